@@ -1,0 +1,20 @@
+"""Renderers behind one contract (:mod:`.contract`): Mitsuba, and the JAX tracer.
+
+Import a renderer through :func:`make_renderer`; this keeps Mitsuba's import
+(which must follow the backend's libLLVM choice) out of module import time.
+"""
+from __future__ import annotations
+
+RENDERERS = ("mitsuba",)
+
+
+def make_renderer(scene, kind: str = "mitsuba", height: int | None = None, width: int | None = None,
+                  shadows: bool | None = None):
+    """A renderer of ``kind`` for ``scene`` at the given resolution (default: the camera's)."""
+    from ..errors import SceneError
+
+    if kind == "mitsuba":
+        from .mitsuba import MitsubaRenderer
+
+        return MitsubaRenderer(scene, height=height, width=width, shadows=shadows)
+    raise SceneError(f"unknown renderer {kind!r}; choose one of {', '.join(RENDERERS)}")

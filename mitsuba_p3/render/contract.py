@@ -1,0 +1,108 @@
+"""The one renderer contract: named parameter arrays in, float32 images out.
+
+Every renderer (Mitsuba, the JAX tracer) takes the same flat mapping. Object
+parameters may carry a leading batch dimension B (one image per row); global
+parameters (lights, ambient light, floor) are shared by the whole batch.
+
+========================  ==========  ==========================================
+key                       shape       meaning
+========================  ==========  ==========================================
+shift                     (B,) 2      object position (x, y) on the floor, metres
+theta                     (B,)        yaw about z, radians
+scale                     (B,) 3      half-extents (x, y, z), metres, > 0
+kappa                     (B,)        shape class: 0 sphere, 1 cube, 2 cylinder
+colour                    (B,) 3      object albedo c
+ambient, diffuse,         (B,)        k_a, k_d, k_s, alpha of the object
+specular, shininess
+light_position            K, 3        point-light positions, metres
+light_intensity           K, 3        point-light RGB intensities
+ambient_light             3           A of the ambient term k_a c A
+floor_colour              3           floor albedo, times floor_pattern
+floor_ambient, ...        ()          floor k_a, k_d, k_s, alpha
+floor_pattern             Ht, Wt, 3   floor pattern texture over the floor square
+========================  ==========  ==========================================
+
+Images are (H, W, 3), or (B, H, W, 3) when the object parameters are batched,
+row 0 at the top, in [0, 1].
+"""
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+
+from ..errors import SceneError
+
+OBJECT_SHAPES: dict[str, tuple[int, ...]] = {
+    "shift": (2,), "theta": (), "scale": (3,), "kappa": (), "colour": (3,),
+    "ambient": (), "diffuse": (), "specular": (), "shininess": (),
+}
+GLOBAL_SHAPES: dict[str, tuple[int, ...] | None] = {
+    "light_position": None, "light_intensity": None, "ambient_light": (3,),
+    "floor_colour": (3,), "floor_ambient": (), "floor_diffuse": (), "floor_specular": (),
+    "floor_shininess": (), "floor_pattern": None,
+}
+KEYS = tuple(OBJECT_SHAPES) + tuple(GLOBAL_SHAPES)
+FLOAT_KEYS = tuple(k for k in KEYS if k != "kappa")
+# Parameters a renderer differentiates (geometry is sampled, not differentiated).
+DIFFERENTIABLE_KEYS = tuple(k for k in FLOAT_KEYS if k not in ("shift", "theta", "scale"))
+
+
+def is_batched(params: Mapping[str, np.ndarray]) -> bool:
+    """True when the object parameters carry a leading batch dimension."""
+    return np.ndim(params["shift"]) == 2
+
+
+def batch_size(params: Mapping[str, np.ndarray]) -> int:
+    return int(np.shape(params["shift"])[0]) if is_batched(params) else 1
+
+
+def check_params(params: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Validate a full parameter mapping and return float32/int32 copies.
+
+    Unbatched object parameters are broadcast to the batch size when any object
+    parameter is batched. Raises :class:`SceneError` naming the offending key.
+    """
+    missing = [k for k in KEYS if k not in params]
+    if missing:
+        raise SceneError(f"renderer parameters missing: {missing}")
+    batch = None
+    for key, base in OBJECT_SHAPES.items():
+        shape = np.shape(params[key])
+        if shape == base:
+            continue
+        if len(shape) == len(base) + 1 and shape[1:] == base:
+            if batch is not None and shape[0] != batch:
+                raise SceneError(f"parameter {key!r} has batch size {shape[0]}, others have {batch}")
+            batch = shape[0]
+            continue
+        raise SceneError(f"parameter {key!r} must have shape {base} or (B, *{base}), got {shape}")
+    out: dict[str, np.ndarray] = {}
+    for key, base in OBJECT_SHAPES.items():
+        dtype = np.int32 if key == "kappa" else np.float32
+        value = np.asarray(params[key], dtype=dtype)
+        if batch is not None and value.shape == base:
+            value = np.broadcast_to(value, (batch, *base))
+        out[key] = np.array(value, order="C")
+    for key in GLOBAL_SHAPES:
+        out[key] = np.array(params[key], dtype=np.float32, order="C")
+    for key in FLOAT_KEYS:
+        if not np.all(np.isfinite(out[key])):
+            raise SceneError(f"parameter {key!r} has NaN or infinite values")
+    if batch == 0:
+        raise SceneError("the batch is empty")
+    if np.any(out["scale"] <= 0):
+        raise SceneError("parameter 'scale' must be positive half-extents")
+    if np.any((out["kappa"] < 0) | (out["kappa"] > 2)):
+        raise SceneError("parameter 'kappa' must be 0 (sphere), 1 (cube) or 2 (cylinder)")
+    lp, li = out["light_position"], out["light_intensity"]
+    if lp.ndim != 2 or lp.shape[1] != 3 or lp.shape[0] < 1 or li.shape != lp.shape:
+        raise SceneError(f"light_position and light_intensity must both be (K, 3) with K >= 1, "
+                         f"got {lp.shape} and {li.shape}")
+    for key, base in GLOBAL_SHAPES.items():
+        if base is not None and out[key].shape != base:
+            raise SceneError(f"parameter {key!r} must have shape {base}, got {out[key].shape}")
+    pattern = out["floor_pattern"]
+    if pattern.ndim != 3 or pattern.shape[2] != 3:
+        raise SceneError(f"floor_pattern must be (H, W, 3), got {pattern.shape}")
+    return out
