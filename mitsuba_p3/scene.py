@@ -201,7 +201,7 @@ class Scene:
     def params(self) -> dict[str, np.ndarray]:
         """The renderer contract: a flat mapping of named float32/int32 arrays."""
         obj, floor = self.object, self.floor
-        pattern = floor.pattern if floor.pattern is not None else np.ones((1, 1, 3))
+        pattern = floor.pattern if floor.pattern is not None else np.ones((2, 2, 3))
         return {
             "shift": np.asarray(obj.shift, np.float32),
             "theta": np.float32(obj.theta),

@@ -68,20 +68,39 @@ class DrParams:
 
 
 def _vec(cls, array: np.ndarray):
-    """(n, k) numpy -> a Dr.Jit k-vector of width n (memory-backed, hence opaque)."""
-    array = np.ascontiguousarray(np.asarray(array, np.float32).reshape(-1, array.shape[-1]).T)
-    return cls(array)
+    """(n, k) numpy -> a Dr.Jit k-vector of width n in Dr.Jit-owned memory.
+
+    Built from lists on purpose: arrays made from numpy views keep numpy's buffer,
+    whose alignment varies call to call, and Dr.Jit bakes the alignment into the
+    kernel -- every render would then recompile (70 ms instead of 1 ms).
+    """
+    array = np.asarray(array, np.float32)
+    return cls(*[mi.Float(column.tolist()) for column in array.reshape(-1, array.shape[-1]).T])
+
+
+def _scalars(array) -> mi.Float:
+    return mi.Float(np.asarray(array, np.float32).reshape(-1).tolist())
+
+
+def to_drjit_pattern(pattern: np.ndarray) -> mi.TensorXf:
+    """The floor pattern as a tensor; Mitsuba bitmaps need >= 2x2 texels, so a 1-texel
+    axis is repeated (bilinear lookups of a constant are unchanged)."""
+    pattern = np.asarray(pattern, np.float32)
+    if pattern.shape[0] < 2 or pattern.shape[1] < 2:
+        pattern = np.repeat(np.repeat(pattern, 2 if pattern.shape[0] < 2 else 1, axis=0),
+                            2 if pattern.shape[1] < 2 else 1, axis=1)
+    return mi.TensorXf(pattern)
 
 
 def to_drjit(params: Mapping[str, np.ndarray]) -> DrParams:
     """Convert a checked contract mapping (numpy) to :class:`DrParams`."""
     batch = params["shift"].shape[0] if is_batched(params) else 1
-    scalar = lambda key: mi.Float(np.asarray(params[key], np.float32).reshape(-1))  # noqa: E731
-    return DrParams(
+    scalar = lambda key: _scalars(params[key])  # noqa: E731
+    p = DrParams(
         shift=_vec(mi.Point2f, np.asarray(params["shift"]).reshape(-1, 2)),
         theta=scalar("theta"),
         scale=_vec(mi.Vector3f, np.asarray(params["scale"]).reshape(-1, 3)),
-        kappa=mi.UInt32(np.asarray(params["kappa"], np.uint32).reshape(-1)),
+        kappa=mi.UInt32(np.asarray(params["kappa"], np.uint32).reshape(-1).tolist()),
         colour=_vec(mi.Color3f, np.asarray(params["colour"]).reshape(-1, 3)),
         ambient=scalar("ambient"), diffuse=scalar("diffuse"),
         specular=scalar("specular"), shininess=scalar("shininess"),
@@ -91,9 +110,16 @@ def to_drjit(params: Mapping[str, np.ndarray]) -> DrParams:
         floor_colour=_vec(mi.Color3f, np.asarray(params["floor_colour"]).reshape(1, 3)),
         floor_ambient=scalar("floor_ambient"), floor_diffuse=scalar("floor_diffuse"),
         floor_specular=scalar("floor_specular"), floor_shininess=scalar("floor_shininess"),
-        floor_pattern=mi.TensorXf(np.asarray(params["floor_pattern"], np.float32)),
+        floor_pattern=None if params["floor_pattern"] is None else to_drjit_pattern(params["floor_pattern"]),
         batch=batch,
     )
+    # Width-1 arrays would otherwise be baked into the kernel as literals: a new value
+    # would recompile it. Opaque values keep one kernel for all parameter values.
+    for f in fields(p):
+        value = getattr(p, f.name)
+        if f.name != "batch" and value is not None:
+            dr.make_opaque(value)
+    return p
 
 
 def _yaw(cos_t, sin_t, v):
@@ -161,8 +187,8 @@ class MitsubaRenderer:
                         "filter_type": "bilinear", "wrap_mode": "clamp"},
         })
         self._pattern_params = mi.traverse(self._floor.pattern)
-        self._uploaded_pattern: np.ndarray | None = None
-        self._cache: dict[str, tuple[np.ndarray, object]] = {}
+        self._uploaded_pattern = None  # the tensor the bitmap holds now
+        self._pattern_cache: tuple[np.ndarray, mi.TensorXf] | None = None
 
     # ------------------------------------------------------------------ params
     def merged(self, params: Mapping[str, np.ndarray] | None) -> dict[str, np.ndarray]:
@@ -178,10 +204,12 @@ class MitsubaRenderer:
     def _set_floor(self, p: DrParams) -> None:
         """Point the floor BSDF at the parameters (uploading the pattern only when it changed)."""
         floor = self._floor
-        floor.colour, floor.ambient, floor.diffuse = p.floor_colour, p.floor_ambient, p.floor_diffuse
+        floor.ambient, floor.diffuse = p.floor_ambient, p.floor_diffuse
         floor.specular, floor.shininess = p.floor_specular, p.floor_shininess
-        self._pattern_params["data"] = p.floor_pattern
-        self._pattern_params.update()
+        if p.floor_pattern is not self._uploaded_pattern:
+            self._pattern_params["data"] = p.floor_pattern
+            self._pattern_params.update()
+            self._uploaded_pattern = p.floor_pattern
 
     # ------------------------------------------------------------------ render
     def render_drjit(self, p: DrParams) -> mi.TensorXf:
@@ -216,12 +244,11 @@ class MitsubaRenderer:
 
     def _to_drjit_cached(self, merged: Mapping[str, np.ndarray]) -> DrParams:
         """:func:`to_drjit`, reusing the pattern tensor while it is unchanged (no re-upload)."""
-        p = to_drjit({**merged, "floor_pattern": np.ones((1, 1, 3), np.float32)})
         pattern = merged["floor_pattern"]
-        cached = self._cache.get("floor_pattern")
+        cached = self._pattern_cache
         if cached is None or cached[0].shape != pattern.shape or not np.array_equal(cached[0], pattern):
-            cached = (np.array(pattern, copy=True), mi.TensorXf(np.asarray(pattern, np.float32)))
-            self._cache["floor_pattern"] = cached
+            cached = self._pattern_cache = (np.array(pattern, copy=True), to_drjit_pattern(pattern))
+        p = to_drjit({**merged, "floor_pattern": None})
         p.floor_pattern = cached[1]
         return p
 
@@ -267,14 +294,24 @@ class MitsubaRenderer:
 
     def _shade(self, p: DrParams) -> mi.Color3f:
         hw = self.height * self.width
+        rays = p.batch * hw
+        differentiating = any(dr.grad_enabled(v) for v in p.differentiable().values())
         if p.batch == 1:
-            batch_index = None
+            batch_index = dr.zeros(mi.UInt32, rays) if differentiating else None
             direction = self._directions
         else:
-            index = dr.arange(mi.UInt32, p.batch * hw)
+            index = dr.arange(mi.UInt32, rays)
             batch_index = index // hw
             direction = dr.gather(mi.Vector3f, self._directions, index - batch_index * hw)
         origin = self._origin
+
+        def per_ray(cls, value, index=None):
+            """A parameter at every ray. Under AD, width-1 values are gathered too: the
+            adjoint of a gather is a scatter-add, and all of them fuse into one backward
+            kernel, where a width-1 broadcast would cost one re-traced kernel per parameter."""
+            if index is not None:
+                return dr.gather(cls, value, index)
+            return dr.gather(cls, value, dr.zeros(mi.UInt32, rays)) if differentiating else value
 
         with dr.suspend_grad():  # geometry: no pose gradients (see module docstring)
             frame = self._object_frame(p, batch_index)
@@ -291,22 +328,23 @@ class MitsubaRenderer:
             view = -direction
             valid = hit_object | hit_floor
 
+        floor = self._floor
+        floor.colour = per_ray(mi.Color3f, p.floor_colour)
         floor_si = dr.zeros(mi.SurfaceInteraction3f)
         floor_si.uv = mi.Point2f((floor_point.x / h + 1.0) * 0.5, (floor_point.y / h + 1.0) * 0.5)
-        floor = self._floor
-        gather = (lambda cls, value: dr.gather(cls, value, batch_index)) if batch_index is not None else (
-            lambda cls, value: value)
-        albedo = dr.select(hit_object, gather(mi.Color3f, p.colour), floor.albedo(floor_si, hit_floor))
-        ambient = dr.select(hit_object, gather(mi.Float, p.ambient), floor.ambient)
-        diffuse = dr.select(hit_object, gather(mi.Float, p.diffuse), floor.diffuse)
-        specular = dr.select(hit_object, gather(mi.Float, p.specular), floor.specular)
-        shininess = dr.select(hit_object, gather(mi.Float, p.shininess), floor.shininess)
+        albedo = dr.select(hit_object, per_ray(mi.Color3f, p.colour, batch_index), floor.albedo(floor_si, hit_floor))
+        ambient = dr.select(hit_object, per_ray(mi.Float, p.ambient, batch_index), per_ray(mi.Float, p.floor_ambient))
+        diffuse = dr.select(hit_object, per_ray(mi.Float, p.diffuse, batch_index), per_ray(mi.Float, p.floor_diffuse))
+        specular = dr.select(hit_object, per_ray(mi.Float, p.specular, batch_index),
+                             per_ray(mi.Float, p.floor_specular))
+        shininess = dr.select(hit_object, per_ray(mi.Float, p.shininess, batch_index),
+                              per_ray(mi.Float, p.floor_shininess))
 
-        result = ambient * albedo * p.ambient_light
-        lights = dr.width(p.light_position)
-        for k in range(lights):
-            position = dr.gather(mi.Point3f, p.light_position, mi.UInt32(k))
-            intensity = dr.gather(mi.Color3f, p.light_intensity, mi.UInt32(k))
+        result = ambient * albedo * per_ray(mi.Color3f, p.ambient_light)
+        for k in range(dr.width(p.light_position)):
+            light = dr.full(mi.UInt32, k, rays) if differentiating else mi.UInt32(k)
+            position = dr.gather(mi.Point3f, p.light_position, light)
+            intensity = dr.gather(mi.Color3f, p.light_intensity, light)
             to_light = position - point
             distance = dr.norm(to_light)
             direction_l = to_light / distance
