@@ -1,0 +1,143 @@
+"""The Mitsuba renderer against the contract, Mitsuba's own integrator path, and itself."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mitsuba_p3.errors import SceneError
+from mitsuba_p3.render import make_renderer
+from mitsuba_p3.scene import load_scene
+
+from .conftest import SCENES, random_object_params
+
+H, W = 60, 80
+
+
+def test_contract_single_and_batched(scene):
+    renderer = make_renderer(scene, height=H, width=W)
+    image = renderer.render()
+    assert image.shape == (H, W, 3) and image.dtype == np.float32
+    assert 0.0 <= image.min() and image.max() <= 1.0
+    batch = renderer.render(random_object_params(np.random.default_rng(0), 4))
+    assert batch.shape == (4, H, W, 3) and batch.dtype == np.float32
+
+
+def test_batch_equals_single_renders(scene):
+    renderer = make_renderer(scene, height=H, width=W, shadows=True)
+    params = random_object_params(np.random.default_rng(1), 6)
+    batch = renderer.render(params)
+    for b in range(6):
+        single = renderer.render({k: v[b] for k, v in params.items()})
+        np.testing.assert_allclose(batch[b], single, atol=1e-6, err_msg=f"batch element {b}")
+    assert np.abs(batch[0] - batch[1]).max() > 0.1  # the batch elements really differ
+
+
+def test_render_is_deterministic(scene):
+    renderer = make_renderer(scene, height=H, width=W)
+    assert np.array_equal(renderer.render(), renderer.render())
+
+
+@pytest.mark.parametrize("shape", ["sphere", "cube", "cylinder"])
+@pytest.mark.parametrize("shadows", [False, True])
+def test_matches_mitsubas_own_scene_loading(mi, shape, shadows):
+    """The ray-space renderer equals mi.load_file + phong_integrator (instances, Embree) on the XML."""
+    overrides = {"shape": shape, "theta_deg": "35", "scale": "0.04, 0.025, 0.03", "shift_x": "0.02",
+                 "shift_y": "-0.01"}
+    scene = load_scene(SCENES / "room.xml", overrides)
+    fast = make_renderer(scene, height=120, width=160, shadows=shadows).render()
+    mi_scene = mi.load_file(str(SCENES / "room.xml"), **overrides)
+    sensor = mi_scene.sensors()[0]
+    params = mi.traverse(sensor)
+    params["film.size"] = [160, 120]
+    params.update()
+    integrator = mi.load_dict({"type": "phong_integrator", "shadows": shadows})
+    reference = mi.render(mi_scene, integrator=integrator).numpy()
+    diff = np.abs(fast - reference).max(axis=2)
+    assert (diff > 2 / 255).mean() <= 0.005, f"{(diff > 2 / 255).mean():.4%} of pixels differ"
+    assert np.median(diff) < 1e-4
+
+
+def test_image_orientation(scene):
+    """+x is to the right, +y (away from the camera) is higher up, row 0 is the top."""
+    renderer = make_renderer(scene, height=H, width=W)
+    floor_only = renderer.render({"scale": np.full(3, 1e-4, np.float32)})
+
+    def centroid(image):
+        mask = np.abs(image - floor_only).max(axis=2) > 0.02
+        rows, cols = np.nonzero(mask)
+        return rows.mean(), cols.mean()
+
+    r0, c0 = centroid(renderer.render())
+    r_right, c_right = centroid(renderer.render({"shift": np.array([0.08, 0.0], np.float32)}))
+    r_far, c_far = centroid(renderer.render({"shift": np.array([0.0, 0.08], np.float32)}))
+    assert c_right > c0 + 5 and abs(r_right - r0) < 3
+    assert r_far < r0 - 3
+
+
+def test_shadows_only_darken(scene):
+    lit = make_renderer(scene, height=H, width=W, shadows=False).render()
+    shadowed = make_renderer(scene, height=H, width=W, shadows=True).render()
+    assert np.all(shadowed <= lit + 1e-6)
+    assert (lit - shadowed).max() > 0.05  # a visible cast shadow exists
+
+
+def test_shapes_look_different(scene):
+    renderer = make_renderer(scene, height=H, width=W)
+    images = [renderer.render({"kappa": np.int32(k), "theta": np.float32(0.4)}) for k in range(3)]
+    for a in range(3):
+        for b in range(a + 1, 3):
+            assert np.abs(images[a] - images[b]).max() > 0.1
+
+
+def test_no_kernel_recompilation_after_first_render(scene):
+    import drjit as dr
+
+    renderer = make_renderer(scene, height=H, width=W, shadows=True)
+    rng = np.random.default_rng(2)
+    renderer.render({k: v[0] for k, v in random_object_params(rng, 1).items()})
+    renderer.render(random_object_params(rng, 5))
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history_clear()
+    try:
+        for _ in range(5):
+            renderer.render({k: v[0] for k, v in random_object_params(rng, 1).items()}
+                            | {"light_intensity": rng.uniform(0.1, 0.6, (3, 3)).astype(np.float32)})
+            renderer.render(random_object_params(rng, 5))
+        history = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    compiled = [k for k in history if str(k["type"]).endswith("JIT") and not k["cache_hit"]]
+    assert not compiled, f"{len(compiled)} kernels were compiled after warm-up"
+    assert any(str(k["type"]).endswith("JIT") for k in history)  # the history really recorded launches
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * 4096 / 2**20
+
+
+def test_memory_flat_over_thousands_of_renders(scene):
+    renderer = make_renderer(scene, height=30, width=40)
+    rng = np.random.default_rng(3)
+    params = [random_object_params(rng, 4) for _ in range(8)]
+    for i in range(200):
+        renderer.render(params[i % 8])
+    before = _rss_mb()
+    for i in range(2000):
+        renderer.render(params[i % 8])
+    grown = _rss_mb() - before
+    assert grown < 25, f"resident memory grew by {grown:.1f} MB over 2000 renders"
+
+
+@pytest.mark.parametrize("update, message", [
+    ({"colour": np.array([np.nan, 0.5, 0.5], np.float32)}, "NaN"),
+    ({"shift": np.zeros(3, np.float32)}, "shape"),
+    ({"kappa": np.int32(5)}, "kappa"),
+    ({"scale": np.array([0.01, -0.01, 0.01], np.float32)}, "positive"),
+    ({"light_intensity": np.ones((2, 3), np.float32)}, "light_position"),
+    ({"colur": np.ones(3, np.float32)}, "unknown renderer parameter"),
+])
+def test_bad_parameters_raise(scene, update, message):
+    renderer = make_renderer(scene, height=H, width=W)
+    with pytest.raises(SceneError, match=message):
+        renderer.render(update)
