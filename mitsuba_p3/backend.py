@@ -11,7 +11,6 @@ from __future__ import annotations
 import glob
 import os
 import re
-import sys
 from pathlib import Path
 
 from .errors import BackendError
@@ -79,10 +78,7 @@ def mitsuba():
     if _MI is not None:
         return _MI
     path, _ = find_llvm()
-    if "drjit" in sys.modules and os.environ.get("DRJIT_LIBLLVM_PATH") != path:
-        # Dr.Jit may already have initialised with another library; we cannot
-        # change it any more, so only set it for child processes.
-        pass
+    # Read by Dr.Jit when its LLVM backend initialises, i.e. at the first LLVM array.
     os.environ["DRJIT_LIBLLVM_PATH"] = path
     try:
         import drjit as dr

@@ -1,0 +1,61 @@
+"""The `mitsuba-p3 render` command: it renders, it follows overrides, and bad input is one line."""
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mitsuba_p3.images import read_png
+
+from .conftest import SCENES
+
+
+def run(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "mitsuba_p3.cli", *map(str, args)], capture_output=True,
+                          text=True, timeout=300, cwd=cwd)
+
+
+def test_render_writes_png_and_follows_overrides(tmp_path):
+    plain = run("render", SCENES / "fsclvr.xml", "--resolution", "60x80", "-o", tmp_path / "a.png")
+    assert plain.returncode == 0, plain.stderr
+    changed = run("render", SCENES / "fsclvr.xml", "--resolution", "60x80", "--shape", "cube", "--color", "green",
+                  "--material", "metal", "--shift", "0.03,0.01", "--theta", "20", "--scale", "small",
+                  "--shadows", "-o", tmp_path / "b.png")
+    assert changed.returncode == 0, changed.stderr
+    a, b = read_png(tmp_path / "a.png"), read_png(tmp_path / "b.png")
+    assert a.shape == b.shape == (60, 80, 3)
+    assert np.abs(a - b).max() > 0.1
+
+
+def _broken(tmp_path, old, new):
+    shutil.copy(SCENES / "room.xml", tmp_path / "scene.xml")
+    shutil.copytree(SCENES / "textures", tmp_path / "textures")
+    path = tmp_path / "scene.xml"
+    path.write_text(path.read_text().replace(old, new))
+    return path
+
+
+@pytest.mark.parametrize("case", ["malformed", "shape", "material", "scale", "texture", "resolution"])
+def test_bad_input_is_one_error_line(tmp_path, case):
+    scene = SCENES / "fsclvr.xml"
+    extra = []
+    if case == "malformed":
+        scene = _broken(tmp_path, "</scene>", "")
+    elif case == "shape":
+        extra = ["--shape", "pyramid"]
+    elif case == "material":
+        extra = ["--material", "velvet"]
+    elif case == "scale":
+        extra = ["--scale=-0.02"]
+    elif case == "texture":
+        scene = _broken(tmp_path, "textures/wood.png", "textures/nowhere.png")
+    elif case == "resolution":
+        extra = ["--resolution", "120by160"]
+    done = run("render", scene, *extra, "-o", tmp_path / "out.png")
+    assert done.returncode != 0
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:"), done.stderr
+    assert not (tmp_path / "out.png").exists()
