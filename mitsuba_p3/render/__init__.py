@@ -1,11 +1,11 @@
-"""Renderers behind one contract (:mod:`.contract`): Mitsuba, and the JAX tracer.
+"""Renderers behind one contract (:mod:`.contract`): Mitsuba, and the JAX tracer that cross-checks it.
 
 Import a renderer through :func:`make_renderer`; this keeps Mitsuba's import
 (which must follow the backend's libLLVM choice) out of module import time.
 """
 from __future__ import annotations
 
-RENDERERS = ("mitsuba",)
+RENDERERS = ("mitsuba", "jax")
 
 
 def make_renderer(scene, kind: str = "mitsuba", height: int | None = None, width: int | None = None,
@@ -17,4 +17,8 @@ def make_renderer(scene, kind: str = "mitsuba", height: int | None = None, width
         from .mitsuba import MitsubaRenderer
 
         return MitsubaRenderer(scene, height=height, width=width, shadows=shadows)
+    if kind == "jax":
+        from .jax_tracer import JaxRenderer
+
+        return JaxRenderer(scene, height=height, width=width, shadows=shadows)
     raise SceneError(f"unknown renderer {kind!r}; choose one of {', '.join(RENDERERS)}")

@@ -106,3 +106,8 @@ def check_params(params: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     if pattern.ndim != 3 or pattern.shape[2] != 3:
         raise SceneError(f"floor_pattern must be (H, W, 3), got {pattern.shape}")
     return out
+
+
+def unbatch(params: Mapping[str, np.ndarray], index: int) -> dict[str, np.ndarray]:
+    """Element ``index`` of a batched mapping, as an unbatched mapping."""
+    return {k: (np.asarray(v)[index] if k in OBJECT_SHAPES else v) for k, v in params.items()}

@@ -292,27 +292,18 @@ class MitsubaRenderer:
         normal = dr.normalize(_yaw(cos_t, sin_t, si.sh_frame.n / scale))
         return si.is_valid(), (start + si.t) / length, normal
 
-    def _shade(self, p: DrParams) -> mi.Color3f:
+    def _rays(self, p: DrParams, differentiating: bool = False):
+        """Per-ray batch index (None for an unbatched, non-AD render) and camera direction."""
         hw = self.height * self.width
-        rays = p.batch * hw
-        differentiating = any(dr.grad_enabled(v) for v in p.differentiable().values())
         if p.batch == 1:
-            batch_index = dr.zeros(mi.UInt32, rays) if differentiating else None
-            direction = self._directions
-        else:
-            index = dr.arange(mi.UInt32, rays)
-            batch_index = index // hw
-            direction = dr.gather(mi.Vector3f, self._directions, index - batch_index * hw)
+            return (dr.zeros(mi.UInt32, hw) if differentiating else None), self._directions
+        index = dr.arange(mi.UInt32, p.batch * hw)
+        batch_index = index // hw
+        return batch_index, dr.gather(mi.Vector3f, self._directions, index - batch_index * hw)
+
+    def _geometry(self, p: DrParams, batch_index, direction):
+        """First hits, detached: (frame, hit_object, hit_floor, point, normal, floor_point)."""
         origin = self._origin
-
-        def per_ray(cls, value, index=None):
-            """A parameter at every ray. Under AD, width-1 values are gathered too: the
-            adjoint of a gather is a scatter-add, and all of them fuse into one backward
-            kernel, where a width-1 broadcast would cost one re-traced kernel per parameter."""
-            if index is not None:
-                return dr.gather(cls, value, index)
-            return dr.gather(cls, value, dr.zeros(mi.UInt32, rays)) if differentiating else value
-
         with dr.suspend_grad():  # geometry: no pose gradients (see module docstring)
             frame = self._object_frame(p, batch_index)
             hit_object, t_object, n_object = self._trace_object(frame, origin, direction)
@@ -322,11 +313,39 @@ class MitsubaRenderer:
             hit_floor = (direction.z < 0) & (t_floor > 0) & (dr.abs(floor_point.x) <= h) & (
                 dr.abs(floor_point.y) <= h)
             hit_object &= ~hit_floor | (t_object < t_floor)
+            hit_floor &= ~hit_object
             t = dr.select(hit_object, t_object, t_floor)
             point = origin + t * direction
             normal = dr.select(hit_object, n_object, mi.Vector3f(0.0, 0.0, 1.0))
-            view = -direction
-            valid = hit_object | hit_floor
+        return frame, hit_object, hit_floor, point, normal, floor_point
+
+    def surface_ids(self, params: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
+        """Which surface each pixel sees: 0 nothing, 1 the floor, 2 the object. (H, W) or (B, H, W)."""
+        merged = self.merged(params)
+        p = self._to_drjit_cached(merged)
+        batch_index, direction = self._rays(p)
+        _, hit_object, hit_floor, *_ = self._geometry(p, batch_index, direction)
+        ids = dr.select(hit_object, 2, dr.select(hit_floor, 1, 0))
+        out = mi.UInt32(ids).numpy().astype(np.int32).reshape(p.batch, self.height, self.width)
+        return out if is_batched(merged) else out[0]
+
+    def _shade(self, p: DrParams) -> mi.Color3f:
+        rays = p.batch * self.height * self.width
+        differentiating = any(dr.grad_enabled(v) for v in p.differentiable().values())
+        batch_index, direction = self._rays(p, differentiating)
+
+        def per_ray(cls, value, index=None):
+            """A parameter at every ray. Under AD, width-1 values are gathered too: the
+            adjoint of a gather is a scatter-add, and all of them fuse into one backward
+            kernel, where a width-1 broadcast would cost one re-traced kernel per parameter."""
+            if index is not None:
+                return dr.gather(cls, value, index)
+            return dr.gather(cls, value, dr.zeros(mi.UInt32, rays)) if differentiating else value
+
+        frame, hit_object, hit_floor, point, normal, floor_point = self._geometry(p, batch_index, direction)
+        view = -direction
+        valid = hit_object | hit_floor
+        h = self.floor_half_size
 
         floor = self._floor
         floor.colour = per_ray(mi.Color3f, p.floor_colour)
