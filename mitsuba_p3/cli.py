@@ -77,7 +77,7 @@ def render(
     sets: Optional[List[str]] = typer.Option(None, "--set", help="Override any <default> NAME=VALUE."),
     shadows: Optional[bool] = typer.Option(None, "--shadows/--no-shadows", help="Hard shadows (default: as the XML)."),
     resolution: Optional[str] = typer.Option(None, help="HxW (default: the XML's film)."),
-    renderer: str = typer.Option("mitsuba", help="Renderer: mitsuba."),
+    renderer: str = typer.Option("mitsuba", help="Renderer: mitsuba or jax."),
 ) -> None:
     """Render a scene XML to a PNG, optionally changing the object."""
     from .images import write_png
@@ -89,6 +89,35 @@ def render(
     image = make_renderer(scene, renderer, height=height, width=width, shadows=shadows).render()
     write_png(output, image)
     typer.echo(f"wrote {output} ({image.shape[0]}x{image.shape[1]}, {renderer})")
+
+
+@app.command()
+def crosscheck(
+    scene_file: Path = typer.Argument(..., help="Scene XML (e.g. scenes/fsclvr.xml)."),
+    output: Path = typer.Option(Path("crosscheck.png"), "-o", "--output",
+                                help="Difference image: Mitsuba | JAX | 10x |difference|."),
+    shape: Optional[str] = typer.Option(None, help="sphere, cube or cylinder."),
+    color: Optional[str] = typer.Option(None, "--color", "--colour", help="CLEVR colour name or 'r,g,b'."),
+    material: Optional[str] = typer.Option(None, help="rubber or metal."),
+    shift: Optional[str] = typer.Option(None, help="'x,y' position on the floor (m)."),
+    theta: Optional[float] = typer.Option(None, help="Yaw about z (degrees)."),
+    scale: Optional[str] = typer.Option(None, help="small, large, one half-extent or 'sx,sy,sz' (m)."),
+    sets: Optional[List[str]] = typer.Option(None, "--set", help="Override any <default> NAME=VALUE."),
+    shadows: Optional[bool] = typer.Option(None, "--shadows/--no-shadows", help="Hard shadows (default: as the XML)."),
+    resolution: Optional[str] = typer.Option("120x160", help="HxW."),
+) -> None:
+    """Render a scene with Mitsuba and with the JAX tracer; print agreement figures (JSON)."""
+    from .images import write_png
+    from .render.crosscheck import crosscheck as run_crosscheck
+    from .render.crosscheck import difference_image
+    from .scene import load_scene
+
+    scene = load_scene(scene_file, _overrides(shape, color, material, shift, theta, scale, sets))
+    height, width = _resolution(resolution)
+    figures, mitsuba_image, jax_image = run_crosscheck(scene, height=height, width=width, shadows=shadows)
+    write_png(output, difference_image(mitsuba_image, jax_image))
+    typer.echo(json.dumps({**{k: round(v, 6) for k, v in figures.items()}, "difference_image": str(output)},
+                          indent=2))
 
 
 @app.command()
