@@ -18,6 +18,17 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Bayesian inverse graphics for few-shot concept learning (Mitsuba 3 + JAX).")
 
 
+# Options shared by the commands that take a scene and change its object.
+SHAPE = typer.Option(None, help="sphere, cube or cylinder.")
+COLOUR = typer.Option(None, "--color", "--colour", help="CLEVR colour name or 'r,g,b' in [0,1].")
+MATERIAL = typer.Option(None, help="rubber or metal.")
+SHIFT = typer.Option(None, help="'x,y' position on the floor (m).")
+THETA = typer.Option(None, help="Yaw about z (degrees).")
+SCALE = typer.Option(None, help="small, large, one half-extent or 'sx,sy,sz' (m).")
+SETS = typer.Option(None, "--set", help="Override any <default> NAME=VALUE.")
+SHADOWS = typer.Option(None, "--shadows/--no-shadows", help="Hard shadows (default: as the XML).")
+
+
 def _resolution(text: str | None) -> tuple[int | None, int | None]:
     if not text:
         return None, None
@@ -68,14 +79,14 @@ def _overrides(shape, color, material, shift, theta, scale, sets) -> dict[str, s
 def render(
     scene_file: Path = typer.Argument(..., help="Scene XML (e.g. scenes/fsclvr.xml)."),
     output: Path = typer.Option(..., "-o", "--output", help="PNG to write."),
-    shape: Optional[str] = typer.Option(None, help="sphere, cube or cylinder."),
-    color: Optional[str] = typer.Option(None, "--color", "--colour", help="CLEVR colour name or 'r,g,b' in [0,1]."),
-    material: Optional[str] = typer.Option(None, help="rubber or metal."),
-    shift: Optional[str] = typer.Option(None, help="'x,y' position on the floor (m)."),
-    theta: Optional[float] = typer.Option(None, help="Yaw about z (degrees)."),
-    scale: Optional[str] = typer.Option(None, help="small, large, one half-extent or 'sx,sy,sz' (m)."),
-    sets: Optional[List[str]] = typer.Option(None, "--set", help="Override any <default> NAME=VALUE."),
-    shadows: Optional[bool] = typer.Option(None, "--shadows/--no-shadows", help="Hard shadows (default: as the XML)."),
+    shape: Optional[str] = SHAPE,
+    color: Optional[str] = COLOUR,
+    material: Optional[str] = MATERIAL,
+    shift: Optional[str] = SHIFT,
+    theta: Optional[float] = THETA,
+    scale: Optional[str] = SCALE,
+    sets: Optional[List[str]] = SETS,
+    shadows: Optional[bool] = SHADOWS,
     resolution: Optional[str] = typer.Option(None, help="HxW (default: the XML's film)."),
     renderer: str = typer.Option("mitsuba", help="Renderer: mitsuba or jax."),
 ) -> None:
@@ -96,14 +107,14 @@ def crosscheck(
     scene_file: Path = typer.Argument(..., help="Scene XML (e.g. scenes/fsclvr.xml)."),
     output: Path = typer.Option(Path("crosscheck.png"), "-o", "--output",
                                 help="Difference image: Mitsuba | JAX | 10x |difference|."),
-    shape: Optional[str] = typer.Option(None, help="sphere, cube or cylinder."),
-    color: Optional[str] = typer.Option(None, "--color", "--colour", help="CLEVR colour name or 'r,g,b'."),
-    material: Optional[str] = typer.Option(None, help="rubber or metal."),
-    shift: Optional[str] = typer.Option(None, help="'x,y' position on the floor (m)."),
-    theta: Optional[float] = typer.Option(None, help="Yaw about z (degrees)."),
-    scale: Optional[str] = typer.Option(None, help="small, large, one half-extent or 'sx,sy,sz' (m)."),
-    sets: Optional[List[str]] = typer.Option(None, "--set", help="Override any <default> NAME=VALUE."),
-    shadows: Optional[bool] = typer.Option(None, "--shadows/--no-shadows", help="Hard shadows (default: as the XML)."),
+    shape: Optional[str] = SHAPE,
+    color: Optional[str] = COLOUR,
+    material: Optional[str] = MATERIAL,
+    shift: Optional[str] = SHIFT,
+    theta: Optional[float] = THETA,
+    scale: Optional[str] = SCALE,
+    sets: Optional[List[str]] = SETS,
+    shadows: Optional[bool] = SHADOWS,
     resolution: Optional[str] = typer.Option("120x160", help="HxW."),
 ) -> None:
     """Render a scene with Mitsuba and with the JAX tracer; print agreement figures (JSON)."""

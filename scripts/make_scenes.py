@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from mitsuba_p3.images import write_png
 from mitsuba_p3.scene import Floor, PhongMaterial, PointLight, Scene, SceneObject, save_scene
 
 # Tabletop-scale stand-ins for CLEVR's warm key, cool fill and back lights (metres, RGB).

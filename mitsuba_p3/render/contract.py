@@ -111,3 +111,32 @@ def check_params(params: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
 def unbatch(params: Mapping[str, np.ndarray], index: int) -> dict[str, np.ndarray]:
     """Element ``index`` of a batched mapping, as an unbatched mapping."""
     return {k: (np.asarray(v)[index] if k in OBJECT_SHAPES else v) for k, v in params.items()}
+
+
+class Renderer:
+    """What every renderer shares: the scene, the resolution, and the parameter merge.
+
+    Subclasses implement ``render(params)``, ``vjp(params, cotangent)`` and
+    ``surface_ids(params)`` on numpy mappings.
+    """
+
+    name = "renderer"
+
+    def __init__(self, scene, height: int | None = None, width: int | None = None, shadows: bool | None = None):
+        scene.validate()
+        self.scene = scene
+        self.height = int(height or scene.camera.height)
+        self.width = int(width or scene.camera.width)
+        self.shadows = scene.shadows if shadows is None else bool(shadows)
+        self.floor_half_size = float(scene.floor.half_size)
+        self.params = check_params(scene.params())  # the scene's values; render() overrides some
+
+    def merged(self, params: Mapping[str, np.ndarray] | None) -> dict[str, np.ndarray]:
+        """The scene's parameters overridden by ``params``, checked."""
+        merged = dict(self.params)
+        if params:
+            unknown = set(params) - set(merged)
+            if unknown:
+                raise SceneError(f"unknown renderer parameter(s) {sorted(unknown)}; known: {sorted(merged)}")
+            merged.update(params)
+        return check_params(merged)

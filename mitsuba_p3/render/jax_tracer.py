@@ -28,10 +28,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import SceneError
 from ..scene import Camera, Scene
 from ..shapes import SHAPES
-from .contract import OBJECT_SHAPES, check_params, is_batched, unbatch
+from .contract import OBJECT_SHAPES, Renderer, is_batched, unbatch
 
 SHADOW_OFFSET = 1e-4  # metres along the normal for shadow rays (as the Mitsuba renderer)
 _TINY = 1e-30
@@ -243,7 +242,7 @@ def trace(shape: str, p: Mapping[str, jnp.ndarray], origin, directions, floor_ha
     return jnp.where(valid, jnp.clip(result, 0.0, 1.0), 0.0).T
 
 
-class JaxRenderer:
+class JaxRenderer(Renderer):
     """Render the one-object Phong scene contract with the JAX tracer.
 
     Same interface as :class:`~mitsuba_p3.render.mitsuba.MitsubaRenderer`:
@@ -256,13 +255,7 @@ class JaxRenderer:
 
     def __init__(self, scene: Scene, height: int | None = None, width: int | None = None,
                  shadows: bool | None = None):
-        scene.validate()
-        self.scene = scene
-        self.height = int(height or scene.camera.height)
-        self.width = int(width or scene.camera.width)
-        self.shadows = scene.shadows if shadows is None else bool(shadows)
-        self.floor_half_size = float(scene.floor.half_size)
-        self.params = check_params(scene.params())
+        super().__init__(scene, height, width, shadows)
         origin, directions = camera_rays(scene.camera, self.height, self.width)
         self._origin, self._directions = jnp.asarray(origin), jnp.asarray(directions.T)  # (3, N)
         self._single = {
@@ -290,14 +283,6 @@ class JaxRenderer:
         return self._trace_batch({k: (v[None] if k in OBJECT_SHAPES else v) for k, v in p.items()})[0]
 
     # ------------------------------------------------------------------ contract
-    def merged(self, params: Mapping[str, np.ndarray] | None) -> dict[str, np.ndarray]:
-        merged = dict(self.params)
-        if params:
-            unknown = set(params) - set(merged)
-            if unknown:
-                raise SceneError(f"unknown renderer parameter(s) {sorted(unknown)}; known: {sorted(merged)}")
-            merged.update(params)
-        return check_params(merged)
 
     def _call(self, merged, single, batched):
         if is_batched(merged):

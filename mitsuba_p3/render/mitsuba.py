@@ -22,10 +22,9 @@ from typing import Mapping
 import numpy as np
 
 from ..backend import mitsuba
-from ..errors import SceneError
 from ..scene import Scene
 from ..shapes import PARTS, SHAPES, part_dict
-from .contract import FLOAT_KEYS, check_params, is_batched
+from .contract import FLOAT_KEYS, Renderer, is_batched
 
 mi = mitsuba()
 import drjit as dr  # noqa: E402  (after the backend has chosen libLLVM)
@@ -137,7 +136,7 @@ def _box_interval(origin, direction):
     return dr.max(t_near), dr.min(t_far)
 
 
-class MitsubaRenderer:
+class MitsubaRenderer(Renderer):
     """Render the one-object Phong scene contract with Mitsuba.
 
     ``renderer.render(params)`` takes a mapping of named arrays (see
@@ -152,13 +151,7 @@ class MitsubaRenderer:
 
     def __init__(self, scene: Scene, height: int | None = None, width: int | None = None,
                  shadows: bool | None = None):
-        scene.validate()
-        self.scene = scene
-        self.height = int(height or scene.camera.height)
-        self.width = int(width or scene.camera.width)
-        self.shadows = scene.shadows if shadows is None else bool(shadows)
-        self.floor_half_size = float(scene.floor.half_size)
-        self.params = check_params(scene.params())
+        super().__init__(scene, height, width, shadows)
 
         cam = scene.camera
         self._sensor = mi.load_dict({
@@ -191,15 +184,6 @@ class MitsubaRenderer:
         self._pattern_cache: tuple[np.ndarray, mi.TensorXf] | None = None
 
     # ------------------------------------------------------------------ params
-    def merged(self, params: Mapping[str, np.ndarray] | None) -> dict[str, np.ndarray]:
-        """The scene's parameters overridden by ``params``, checked."""
-        merged = dict(self.params)
-        if params:
-            unknown = set(params) - set(merged)
-            if unknown:
-                raise SceneError(f"unknown renderer parameter(s) {sorted(unknown)}; known: {sorted(merged)}")
-            merged.update(params)
-        return check_params(merged)
 
     def _set_floor(self, p: DrParams) -> None:
         """Point the floor BSDF at the parameters (uploading the pattern only when it changed)."""
