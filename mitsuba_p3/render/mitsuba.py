@@ -185,11 +185,12 @@ class MitsubaRenderer(Renderer):
 
     # ------------------------------------------------------------------ params
 
-    def _set_floor(self, p: DrParams) -> None:
-        """Point the floor BSDF at the parameters (uploading the pattern only when it changed)."""
-        floor = self._floor
-        floor.ambient, floor.diffuse = p.floor_ambient, p.floor_diffuse
-        floor.specular, floor.shininess = p.floor_specular, p.floor_shininess
+    def _set_pattern(self, p: DrParams) -> None:
+        """Give the floor's bitmap the pattern tensor (uploading only when it changed).
+
+        The floor's ``phong`` BSDF supplies the floor albedo (colour x pattern); its
+        Phong weights are read straight from the parameters in :meth:`_shade`.
+        """
         if p.floor_pattern is not self._uploaded_pattern:
             self._pattern_params["data"] = p.floor_pattern
             self._pattern_params.update()
@@ -198,7 +199,7 @@ class MitsubaRenderer(Renderer):
     # ------------------------------------------------------------------ render
     def render_drjit(self, p: DrParams) -> mi.TensorXf:
         """Render on Dr.Jit arrays; returns a (B, H, W, 3) tensor that AD can differentiate."""
-        self._set_floor(p)
+        self._set_pattern(p)
         colour = self._shade(p)
         return mi.TensorXf(dr.ravel(colour), shape=(p.batch, self.height, self.width, 3))
 
