@@ -263,6 +263,7 @@ class JaxRenderer(Renderer):
         }
         self._batched = jax.jit(self._trace_batch)
         self._ids = {shape: jax.jit(partial(self._trace_shape, shape, ids=True)) for shape in SHAPES}
+        self._vjps: dict = {}  # jitted pullbacks, per render function
 
     # ------------------------------------------------------------------ pure JAX
     def _trace_shape(self, shape: str, p, ids: bool = False):
@@ -284,15 +285,14 @@ class JaxRenderer(Renderer):
 
     # ------------------------------------------------------------------ contract
 
-    def _call(self, merged, single, batched):
-        if is_batched(merged):
-            return batched(merged)
-        return single[SHAPES[int(merged["kappa"])]](merged)
+    def _function(self, merged: Mapping[str, np.ndarray]):
+        """The jitted render for this mapping: its class's own for one image, map + switch for a batch."""
+        return self._batched if is_batched(merged) else self._single[SHAPES[int(merged["kappa"])]]
 
     def render(self, params: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
         """Render the contract mapping; (H, W, 3) or (B, H, W, 3) float32 in [0, 1]."""
         merged = self.merged(params)
-        return np.asarray(self._call(merged, self._single, self._batched))
+        return np.asarray(self._function(merged)(merged))
 
     def surface_ids(self, params: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
         """Which surface each pixel sees: 0 nothing, 1 the floor, 2 the object. (H, W) or (B, H, W)."""
@@ -304,11 +304,13 @@ class JaxRenderer(Renderer):
     def vjp(self, params: Mapping[str, np.ndarray] | None, cotangent: np.ndarray) -> dict[str, np.ndarray]:
         """Gradients of ``sum(render(params) * cotangent)`` for every float parameter."""
         merged = self.merged(params)
-        batched = is_batched(merged)
-        fn = self._batched if batched else self._single[SHAPES[int(merged["kappa"])]]
+        fn = self._function(merged)
+        if fn not in self._vjps:
+            self._vjps[fn] = jax.jit(lambda floats, kappa, cot: jax.vjp(
+                lambda f: fn({**f, "kappa": kappa}), floats)[1](cot)[0])
         floats = {k: v for k, v in merged.items() if k != "kappa"}
-        image, pullback = jax.vjp(lambda f: fn({**f, "kappa": merged["kappa"]}), floats)
-        (grads,) = pullback(jnp.asarray(np.asarray(cotangent, np.float32).reshape(image.shape)))
+        shape = (*np.shape(merged["shift"])[:-1], self.height, self.width, 3)
+        grads = self._vjps[fn](floats, merged["kappa"], np.asarray(cotangent, np.float32).reshape(shape))
         return {k: np.asarray(v) for k, v in grads.items()}
 
 
