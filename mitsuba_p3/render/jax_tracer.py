@@ -302,7 +302,10 @@ class JaxRenderer(Renderer):
         return np.asarray(self._ids[SHAPES[int(merged["kappa"])]](merged)).astype(np.int32)
 
     def vjp(self, params: Mapping[str, np.ndarray] | None, cotangent: np.ndarray) -> dict[str, np.ndarray]:
-        """Gradients of ``sum(render(params) * cotangent)`` for every float parameter."""
+        """Gradients of ``sum(render(params) * cotangent)`` for every float parameter.
+
+        Pose gradients (shift, theta, scale) are zero: the geometry is under stop_gradient.
+        """
         merged = self.merged(params)
         fn = self._function(merged)
         if fn not in self._vjps:

@@ -91,8 +91,12 @@ def to_drjit_pattern(pattern: np.ndarray) -> mi.TensorXf:
     return mi.TensorXf(pattern)
 
 
-def to_drjit(params: Mapping[str, np.ndarray]) -> DrParams:
-    """Convert a checked contract mapping (numpy) to :class:`DrParams`."""
+def to_drjit(params: Mapping[str, np.ndarray], pattern: mi.TensorXf | None = None) -> DrParams:
+    """Convert a checked contract mapping (numpy) to :class:`DrParams`.
+
+    ``pattern``, when given, is used as the floor pattern tensor instead of
+    converting ``params["floor_pattern"]`` (the renderer reuses an uploaded one).
+    """
     batch = params["shift"].shape[0] if is_batched(params) else 1
     scalar = lambda key: _scalars(params[key])  # noqa: E731
     p = DrParams(
@@ -109,14 +113,14 @@ def to_drjit(params: Mapping[str, np.ndarray]) -> DrParams:
         floor_colour=_vec(mi.Color3f, np.asarray(params["floor_colour"]).reshape(1, 3)),
         floor_ambient=scalar("floor_ambient"), floor_diffuse=scalar("floor_diffuse"),
         floor_specular=scalar("floor_specular"), floor_shininess=scalar("floor_shininess"),
-        floor_pattern=None if params["floor_pattern"] is None else to_drjit_pattern(params["floor_pattern"]),
+        floor_pattern=pattern if pattern is not None else to_drjit_pattern(params["floor_pattern"]),
         batch=batch,
     )
     # Width-1 arrays would otherwise be baked into the kernel as literals: a new value
     # would recompile it. Opaque values keep one kernel for all parameter values.
     for f in fields(p):
         value = getattr(p, f.name)
-        if f.name != "batch" and value is not None:
+        if f.name != "batch":
             dr.make_opaque(value)
     return p
 
@@ -211,7 +215,10 @@ class MitsubaRenderer(Renderer):
         return out if is_batched(merged) else out[0]
 
     def vjp(self, params: Mapping[str, np.ndarray] | None, cotangent: np.ndarray) -> dict[str, np.ndarray]:
-        """Gradients of ``sum(render(params) * cotangent)`` for every float parameter."""
+        """Gradients of ``sum(render(params) * cotangent)`` for every float parameter.
+
+        Pose gradients (shift, theta, scale) are zero: the geometry is detached.
+        """
         merged = self.merged(params)
         p = to_drjit(merged)
         targets = p.differentiable()
@@ -233,9 +240,7 @@ class MitsubaRenderer(Renderer):
         cached = self._pattern_cache
         if cached is None or cached[0].shape != pattern.shape or not np.array_equal(cached[0], pattern):
             cached = self._pattern_cache = (np.array(pattern, copy=True), to_drjit_pattern(pattern))
-        p = to_drjit({**merged, "floor_pattern": None})
-        p.floor_pattern = cached[1]
-        return p
+        return to_drjit(merged, pattern=cached[1])
 
     # ------------------------------------------------------------------ core
     def _object_frame(self, p: DrParams, batch_index):
