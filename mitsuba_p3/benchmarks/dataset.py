@@ -1,0 +1,230 @@
+"""Read and validate a benchmark folder in the project's documented format.
+
+A data set is a folder holding ``labels.json``, the ``scene.xml`` its images
+were made with (plus files that XML references), and PNG images in
+``SPLIT/CLASS/SHOT.png``. The format is documented in the README ("Benchmark
+data sets"). :func:`load_dataset` checks everything up front and reports
+every problem at once; images are read lazily and resized to the inference
+resolution.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from ..images import ImageError, read_png
+from .protocol import SPLITS, BenchmarkError, ClassLabel
+
+FORMAT = "mitsuba-p3-benchmark"
+FORMAT_VERSION = 1
+LABELS_FILE = "labels.json"
+SCENE_FILE = "scene.xml"
+INFERENCE_RESOLUTION = (120, 160)
+ASPECT_TOLERANCE = 0.01
+MAX_REPORTED = 12
+
+
+class DatasetError(BenchmarkError):
+    """A data-set folder is incomplete or inconsistent; the message lists every problem."""
+
+
+@dataclass(frozen=True)
+class Shot:
+    """One labelled image of a data set."""
+
+    index: int
+    file: Path
+    split: str
+    shot: int
+    cls: ClassLabel
+    position: np.ndarray        # (x, y, z) centre, metres
+    yaw: float                  # radians about z
+    scale: np.ndarray           # (3,) half-extents, metres
+    object_to_world: np.ndarray  # (4, 4)
+    mesh: Path | None           # ood: the mesh file (unit frame of object_to_world)
+
+    @property
+    def class_name(self) -> str:
+        return self.cls.name
+
+
+def _class_from(record: dict) -> ClassLabel:
+    c = record["class"]
+    return ClassLabel(str(c["shape"]), str(c["colour"]), str(c["material"]), str(c["size"]))
+
+
+class Dataset:
+    """A validated benchmark folder: its shots, classes and images at ``resolution``."""
+
+    def __init__(self, root: Path, header: dict, shots: list[Shot], rgb: dict[str, tuple],
+                 resolution: tuple[int, int]):
+        self.root = root
+        self.header = header
+        self.shots = shots
+        self.rgb = rgb
+        self.resolution = resolution
+        self._cache: dict[int, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return len(self.shots)
+
+    def __repr__(self) -> str:
+        counts = {s: len(self.classes(s)) for s in SPLITS}
+        return (f"Dataset({self.root}, {len(self)} images, {counts['train']} train / "
+                f"{counts['test']} test classes, resolution {self.resolution})")
+
+    @property
+    def variant(self) -> str:
+        return str(self.header.get("variant", "custom"))
+
+    @property
+    def scene_file(self) -> Path:
+        return self.root / self.header.get("scene", SCENE_FILE)
+
+    def classes(self, split: str) -> list[str]:
+        """Class names of a split, sorted."""
+        return sorted({s.class_name for s in self.shots if s.split == split})
+
+    def shots_of(self, class_name: str) -> list[Shot]:
+        """A class's shots, ordered by shot index."""
+        return sorted((s for s in self.shots if s.class_name == class_name), key=lambda s: s.shot)
+
+    def split(self, split: str) -> list[Shot]:
+        return [s for s in self.shots if s.split == split]
+
+    @cached_property
+    def class_labels(self) -> dict[str, ClassLabel]:
+        return {s.class_name: s.cls for s in self.shots}
+
+    def image(self, shot: Shot | int) -> np.ndarray:
+        """The shot's image as float32 (H, W, 3) in [0, 1] at the data set's resolution."""
+        index = shot if isinstance(shot, int) else shot.index
+        if index not in self._cache:
+            self._cache[index] = load_image(self.shots[index].file, self.resolution)
+        return self._cache[index]
+
+
+def load_image(path: Path, resolution: tuple[int, int]) -> np.ndarray:
+    """Read an image and resize it (area averaging) to ``resolution`` = (H, W), same aspect."""
+    from PIL import Image
+
+    image = read_png(path)
+    height, width = resolution
+    h, w = image.shape[:2]
+    if abs((w / h) / (width / height) - 1.0) > ASPECT_TOLERANCE:
+        raise ImageError(f"{path}: aspect {w}x{h} (W x H) differs from the inference resolution "
+                         f"{width}x{height}; crop it to {width}:{height} first")
+    if (h, w) == (height, width):
+        return image
+    channels = [np.asarray(Image.fromarray(image[..., c], mode="F").resize((width, height), Image.BOX))
+                for c in range(3)]
+    return np.clip(np.stack(channels, axis=-1), 0.0, 1.0).astype(np.float32)
+
+
+def _check_record(i: int, record: dict, root: Path, problems: list[str]) -> Shot | None:
+    where = f"images[{i}]"
+    try:
+        file = root / record["file"]
+        split = record["split"]
+        shot = int(record["shot"])
+        cls = _class_from(record)
+        pose = record["pose"]
+        position = np.array([pose["x"], pose["y"], pose["z"]], dtype=np.float64)
+        yaw = float(pose["yaw"])
+        scale = np.asarray(pose["scale"], dtype=np.float64)
+        matrix = np.asarray(pose["object_to_world"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError) as exc:
+        problems.append(f"{where}: missing or malformed field ({exc!r})")
+        return None
+    where = f"{record['file']}"
+    if split not in SPLITS:
+        problems.append(f"{where}: split {split!r} is not one of {SPLITS}")
+    if scale.shape != (3,) or np.any(~np.isfinite(scale)) or np.any(scale <= 0):
+        problems.append(f"{where}: scale must be 3 positive half-extents, got {pose['scale']}")
+    if matrix.shape != (4, 4) or np.any(~np.isfinite(matrix)):
+        problems.append(f"{where}: object_to_world must be a finite 4x4 matrix")
+    elif not np.allclose(matrix[:3, 3], position, atol=1e-6):
+        problems.append(f"{where}: object_to_world's translation {matrix[:3, 3].round(5).tolist()} "
+                        f"disagrees with x, y, z {position.round(5).tolist()}")
+    if not np.all(np.isfinite(position)) or not np.isfinite(yaw):
+        problems.append(f"{where}: pose has non-finite values")
+    if not file.is_file():
+        problems.append(f"{where}: image file is missing")
+    mesh = record.get("mesh")
+    mesh_path = root / mesh if mesh else None
+    if mesh_path is not None and not mesh_path.is_file():
+        problems.append(f"{where}: mesh {mesh} is missing")
+    return Shot(i, file, split, shot, cls, position, yaw, scale, matrix, mesh_path)
+
+
+def load_dataset(root: str | Path, resolution: tuple[int, int] = INFERENCE_RESOLUTION,
+                 check_images: bool = True) -> Dataset:
+    """Open and validate a data-set folder.
+
+    Raises :class:`DatasetError` listing every missing or unreadable file and
+    every inconsistent label. ``check_images`` also opens each image's header
+    (fast) to find corrupt files and wrong aspects before a long run starts.
+    """
+    root = Path(root)
+    labels_path = root / LABELS_FILE
+    if not root.is_dir():
+        raise DatasetError(f"{root}: no such data-set folder")
+    if not labels_path.is_file():
+        raise DatasetError(f"{root}: no {LABELS_FILE}; is this a benchmark folder? "
+                           "(make one with `mitsuba-p3 benchmark generate`)")
+    try:
+        header = json.loads(labels_path.read_text())
+    except json.JSONDecodeError as exc:
+        raise DatasetError(f"{labels_path}: not valid JSON ({exc})") from None
+    if not isinstance(header, dict) or header.get("format") != FORMAT:
+        raise DatasetError(f"{labels_path}: \"format\" must be {FORMAT!r}")
+    if header.get("version") != FORMAT_VERSION:
+        raise DatasetError(f"{labels_path}: format version {header.get('version')!r} is not supported "
+                           f"(this reader knows version {FORMAT_VERSION})")
+    records = header.get("images")
+    if not isinstance(records, list) or not records:
+        raise DatasetError(f"{labels_path}: \"images\" must be a non-empty list")
+
+    problems: list[str] = []
+    shots = [s for i, r in enumerate(records) if (s := _check_record(i, r, root, problems)) is not None]
+    # Consistency across images: one RGB, one split per class; unique shot indices.
+    rgb: dict[str, tuple] = {}
+    split_of: dict[str, str] = {}
+    seen: set[tuple[str, int]] = set()
+    for shot, record in zip(shots, (records[s.index] for s in shots)):
+        name = shot.class_name
+        colour = tuple(record["class"].get("rgb", ()))
+        if rgb.setdefault(name, colour) != colour:
+            problems.append(f"{record['file']}: class {name} has RGB {list(colour)} here and "
+                            f"{list(rgb[name])} elsewhere")
+        if split_of.setdefault(name, shot.split) != shot.split:
+            problems.append(f"{record['file']}: class {name} appears in both {split_of[name]} and {shot.split}")
+        if (name, shot.shot) in seen:
+            problems.append(f"{record['file']}: shot {shot.shot} of class {name} appears twice")
+        seen.add((name, shot.shot))
+    if check_images:
+        from PIL import Image
+
+        height, width = resolution
+        for shot in shots:
+            if not shot.file.is_file():
+                continue
+            try:
+                with Image.open(shot.file) as im:
+                    im.verify()
+                    w, h = im.size
+            except Exception as exc:  # PIL raises many types for corrupt files
+                problems.append(f"{shot.file.relative_to(root)}: unreadable image ({exc})")
+                continue
+            if abs((w / h) / (width / height) - 1.0) > ASPECT_TOLERANCE:
+                problems.append(f"{shot.file.relative_to(root)}: aspect {w}x{h} does not match "
+                                f"{width}x{height}")
+    if problems:
+        shown = "\n  ".join(problems[:MAX_REPORTED])
+        more = f"\n  ... and {len(problems) - MAX_REPORTED} more" if len(problems) > MAX_REPORTED else ""
+        raise DatasetError(f"{root}: {len(problems)} problem(s) in the data set:\n  {shown}{more}")
+    return Dataset(root, {k: v for k, v in header.items() if k != "images"}, shots, rgb, resolution)

@@ -1,0 +1,194 @@
+"""Render a benchmark with Mitsuba's path tracer into a data-set folder.
+
+The world of each variant (camera, floor, walls, area lights, object materials
+and shape groups) is the Mitsuba XML ``scenes/benchmarks/VARIANT.xml``; editing
+it changes the benchmark. The generator only sets the XML's ``<default>`` knobs
+for each image (object, material, colour, pose, light positions jittered by
+``light_jitter``) and renders. Labels are planned first from the seed
+(:func:`.protocol.plan`), written to ``labels.json``, and every image is written
+atomically, so a killed generation resumes where it stopped.
+"""
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import xml.etree.ElementTree as ET
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .dataset import FORMAT, FORMAT_VERSION, LABELS_FILE, SCENE_FILE
+from .protocol import (OOD_HALF_EXTENT, BenchmarkError, PlannedImage, check_size, check_variant, plan)
+
+WORLDS = Path(__file__).resolve().parents[2] / "scenes" / "benchmarks"
+# Per size: default resolution (H, W). Samples per pixel default to the XML's "spp"
+# (full) or SMALL_SPP (small: the built-in example must take seconds).
+DEFAULT_RESOLUTION = {"full": (480, 640), "small": (120, 160)}
+SMALL_SPP = 32
+
+
+def world_file(variant: str) -> Path:
+    """The XML that describes a variant's world."""
+    path = WORLDS / f"{check_variant(variant)}.xml"
+    if not path.is_file():
+        raise BenchmarkError(f"{path}: missing benchmark world; run `python scripts/make_scenes.py`")
+    return path
+
+
+def read_defaults(path: Path) -> dict[str, str]:
+    """The ``<default name=... value=...>`` knobs of a Mitsuba XML file."""
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        raise BenchmarkError(f"{path}: malformed XML ({exc})") from None
+    return {el.get("name"): el.get("value") for el in root.findall("default")}
+
+
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    """Linear radiance -> display sRGB in [0, 1] (the standard sRGB transfer curve)."""
+    x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def srgb_decode(display: np.ndarray) -> np.ndarray:
+    """Display sRGB in [0, 1] -> linear reflectance."""
+    x = np.asarray(display, dtype=np.float64)
+    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4))
+
+
+def _fmt(values) -> str:
+    return ", ".join(f"{float(v):.6g}" for v in np.atleast_1d(values))
+
+
+def light_positions(defaults: dict[str, str], rng: np.random.Generator) -> dict[str, list[float]]:
+    """Each ``light_*_position`` default, jittered uniformly by +-``light_jitter`` metres per axis."""
+    jitter = float(defaults.get("light_jitter", 0.0))
+    out = {}
+    for name in sorted(defaults):
+        if name.startswith("light_") and name.endswith("_position"):
+            nominal = np.array([float(v) for v in defaults[name].split(",")])
+            out[name] = (nominal + rng.uniform(-jitter, jitter, size=3)).tolist()
+    return out
+
+
+def image_overrides(image: PlannedImage, defaults: dict[str, str]) -> tuple[dict[str, str], dict]:
+    """The XML knobs for one image, and the light positions used (for its label)."""
+    cls, pose = image.cls, image.pose
+    mesh = cls.shape not in ("sphere", "cube", "cylinder")
+    lights = light_positions(defaults, np.random.default_rng(image.image_seed))
+    overrides = {
+        "object": cls.shape,
+        "material": cls.material,
+        "colour": _fmt(srgb_decode(np.asarray(cls.rgb) / 255.0)),
+        "scale": _fmt([OOD_HALF_EXTENT] * 3 if mesh else pose.scale),
+        "theta_deg": _fmt(np.degrees(pose.yaw)),
+        "shift": _fmt([pose.x, pose.y, pose.z]),
+        **{name: _fmt(value) for name, value in lights.items()},
+    }
+    return overrides, lights
+
+
+def label_of(image: PlannedImage, lights: dict) -> dict:
+    """The labels.json record of an image (see the README's data-set format)."""
+    cls, pose = image.cls, image.pose
+    mesh = cls.shape not in ("sphere", "cube", "cylinder")
+    matrix = pose.object_to_world((OOD_HALF_EXTENT,) * 3 if mesh else None)
+    return {
+        "file": image.file, "split": image.split, "shot": image.shot,
+        "class": cls.as_dict(),
+        "pose": {"x": pose.x, "y": pose.y, "z": pose.z, "yaw": pose.yaw, "scale": list(pose.scale),
+                 "object_to_world": matrix.tolist()},
+        "mesh": f"meshes/{cls.shape}.ply" if mesh else None,
+        "lights": lights,
+        "seed": image.image_seed,
+    }
+
+
+def _write_text_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+def _copy_world(world: Path, out: Path, height: int, width: int, spp: int) -> None:
+    """Copy the world XML (with this run's resolution and samples) and the files it references."""
+    text = world.read_text()
+    for name, value in (("width", width), ("height", height), ("spp", spp)):
+        text, n = re.subn(rf'(<default name="{name}" value=")[^"]*(")', rf"\g<1>{value}\g<2>", text)
+        if n != 1:
+            raise BenchmarkError(f"{world}: needs exactly one <default name=\"{name}\">")
+    for relative in re.findall(r'<string name="filename" value="([^"$]+)"', text):
+        source, target = world.parent / relative, out / relative
+        if not source.is_file():
+            raise BenchmarkError(f"{world}: references {relative}, which does not exist")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(source, target)
+    _write_text_atomic(out / SCENE_FILE, text)
+
+
+def _image_is_done(path: Path, height: int, width: int) -> bool:
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.size == (width, height)
+    except (OSError, ValueError):
+        return False
+
+
+def generate(variant: str, out: str | Path, seed: int = 0, size: str = "full",
+             resolution: tuple[int, int] | None = None, spp: int | None = None,
+             progress: Callable[[int, int], None] | None = None) -> Path:
+    """Render benchmark ``variant`` into folder ``out``; returns the labels file.
+
+    Resumes a stopped run: images already on disk at the right resolution are
+    kept. Refuses a folder that holds a different benchmark (other variant,
+    seed, size or resolution). ``progress(done, total)`` is called after each image.
+    """
+    from ..backend import mitsuba
+    from ..images import write_png
+
+    check_variant(variant)
+    check_size(size)
+    height, width = resolution or DEFAULT_RESOLUTION[size]
+    out = Path(out)
+    world = world_file(variant)
+    defaults = read_defaults(world)
+    spp = spp or (SMALL_SPP if size == "small" else int(defaults.get("spp", 128)))
+    if height < 8 or width < 8 or spp < 1:
+        raise BenchmarkError(f"resolution {height}x{width} and spp {spp} are too small")
+    images = plan(variant, seed, size)
+    header = {"format": FORMAT, "version": FORMAT_VERSION, "variant": variant, "seed": seed, "size": size,
+              "resolution": [height, width], "spp": spp, "scene": SCENE_FILE}
+    labels = {**header, "images": [label_of(im, image_overrides(im, defaults)[1]) for im in images]}
+
+    labels_path = out / LABELS_FILE
+    if labels_path.is_file():
+        try:
+            existing = json.loads(labels_path.read_text())
+        except json.JSONDecodeError:
+            existing = None
+        if existing != labels:
+            raise BenchmarkError(f"{out} already holds a different benchmark (labels.json differs); "
+                                 "choose a new --out folder or delete it")
+    out.mkdir(parents=True, exist_ok=True)
+    _copy_world(world, out, height, width, spp)
+    _write_text_atomic(labels_path, json.dumps(labels, indent=1))
+
+    mi = mitsuba()
+    todo = [im for im in images if not _image_is_done(out / im.file, height, width)]
+    done = len(images) - len(todo)
+    if progress:
+        progress(done, len(images))
+    for image in todo:
+        overrides, _ = image_overrides(image, defaults)
+        overrides.update(width=str(width), height=str(height), spp=str(spp))
+        scene = mi.load_file(str(out / SCENE_FILE), parallel=False, **overrides)
+        linear = np.asarray(mi.render(scene, seed=image.image_seed), dtype=np.float32)
+        write_png(out / image.file, srgb_encode(linear[..., :3]))
+        done += 1
+        if progress:
+            progress(done, len(images))
+    return labels_path
