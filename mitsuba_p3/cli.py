@@ -220,6 +220,42 @@ def benchmark_show(
     typer.echo(f"wrote {output}")
 
 
+@app.command()
+def fit(
+    dataset_dir: Path = typer.Argument(..., help="Benchmark folder (its train split is used)."),
+    out: Path = typer.Option(..., "--out", help="Fitted-model folder to write."),
+    stages: str = typer.Option("scene,features,priors", help="Comma-separated stages to (re-)run."),
+    epochs: int = typer.Option(7, help="Scene optimisation epochs."),
+    material_passes: int = typer.Option(5, help="Material-only passes per epoch."),
+    global_passes: int = typer.Option(5, help="Global-only passes per epoch."),
+    learning_rate: float = typer.Option(0.01, help="Adam learning rate."),
+    channels: int = typer.Option(3, help="VGG16 channels to select."),
+    shadows: bool = typer.Option(True, "--shadows/--no-shadows", help="Hard shadows while fitting."),
+) -> None:
+    """Training stage: scene optimisation, feature selection and priors -> a fitted-model folder."""
+    from .fit.model import fit_model
+    from .fit.scene_opt import SceneOptConfig
+
+    config = SceneOptConfig(epochs=epochs, material_passes=material_passes, global_passes=global_passes,
+                            learning_rate=learning_rate, shadows=shadows)
+    bar, update = progress_bar("fit")
+    tasks = {}
+
+    def track(stage: str, done: int, total: int, loss: float) -> None:
+        if stage not in tasks:
+            tasks[stage] = bar.add_task(stage, total=total)
+        description = f"{stage} (loss {loss:.5f})" if stage == "scene" else stage
+        bar.update(tasks[stage], completed=done, total=total, description=description)
+
+    with bar:
+        bar.remove_task(bar.task_ids[0])
+        model = fit_model(dataset_dir, out, [s.strip() for s in stages.split(",") if s.strip()],
+                          scene_config=config, channels=channels, progress=track)
+    summary = {stage: {k: v for k, v in figures.items() if k != "config"}
+               for stage, figures in model.info["stages"].items()}
+    typer.echo(json.dumps({"model": str(out), **summary}, indent=2))
+
+
 def main() -> None:
     try:
         app()

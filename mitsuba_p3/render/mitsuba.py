@@ -17,7 +17,7 @@ gradients wrong and the method never needs them (pose is sampled by MH).
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -125,6 +125,16 @@ def to_drjit(params: Mapping[str, np.ndarray], pattern: mi.TensorXf | None = Non
     return p
 
 
+def _gradients(targets: Mapping[str, object], merged: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Numpy gradients of the Dr.Jit ``targets``, shaped like the contract's arrays."""
+    grads = {}
+    for key, value in targets.items():
+        g = dr.grad(value)
+        array = g.numpy() if isinstance(g, mi.TensorXf) else np.asarray(g).T
+        grads[key] = np.asarray(array, np.float32).reshape(np.shape(merged[key]))
+    return grads
+
+
 def _yaw(cos_t, sin_t, v):
     """Rotate a vector about z by theta (given its cosine and sine)."""
     return mi.Vector3f(cos_t * v.x - sin_t * v.y, sin_t * v.x + cos_t * v.y, v.z)
@@ -227,12 +237,21 @@ class MitsubaRenderer(Renderer):
         image = self.render_drjit(p)
         cot = np.asarray(cotangent, np.float32).reshape(image.shape)
         dr.backward(dr.sum(image.array * mi.Float(cot.reshape(-1))))
-        grads = {}
-        for key, value in targets.items():
-            g = dr.grad(value)
-            array = g.numpy() if isinstance(g, mi.TensorXf) else np.asarray(g).T
-            grads[key] = np.asarray(array, np.float32).reshape(np.shape(merged[key]))
-        return grads
+        return _gradients(targets, merged)
+
+    def loss_and_grad(self, params: Mapping[str, np.ndarray] | None, target: mi.Float,
+                      keys: Sequence[str]) -> tuple[float, dict[str, np.ndarray]]:
+        """Mean squared error to ``target`` (a flat Dr.Jit array of the image) and its
+        gradients with respect to ``keys``, in one forward and one backward pass."""
+        merged = self.merged(params)
+        p = self._to_drjit_cached(merged) if "floor_pattern" not in keys else to_drjit(merged)
+        targets = {key: getattr(p, key) for key in keys}
+        for value in targets.values():
+            dr.enable_grad(value)
+        image = self.render_drjit(p)
+        loss = dr.mean(dr.square(image.array - target))
+        dr.backward(loss)
+        return float(loss[0]), _gradients(targets, merged)
 
     def _to_drjit_cached(self, merged: Mapping[str, np.ndarray]) -> DrParams:
         """:func:`to_drjit`, reusing the pattern tensor while it is unchanged (no re-upload)."""

