@@ -8,8 +8,11 @@ setup:
 
 demo: setup
 	mitsuba-p3 render scenes/fsclvr.xml -o out/fsclvr.png
-	mitsuba-p3 render scenes/room.xml --shape cube --color blue --material metal --theta 30 --shadows -o out/room-cube.png
-	@echo "demo: look at out/fsclvr.png and out/room-cube.png"
+	mitsuba-p3 benchmark generate fsclvr --size small --out out/fsclvr-small
+	mitsuba-p3 benchmark show out/fsclvr-small -o out/fsclvr-small.png
+	mitsuba-p3 fit out/fsclvr-small --out out/model-small --epochs 3
+	$(PYTHON) scripts/plot_fit.py out/model-small --samples 12
+	@echo "demo: look at out/fsclvr.png, out/fsclvr-small.png and out/model-small/figures/"
 
 test: setup
 	$(PYTHON) -m pytest -q

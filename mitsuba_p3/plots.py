@@ -57,3 +57,110 @@ def contact_sheet(dataset, path: str | Path, columns: int = 8) -> Path:
             titles.append(f"{split}: {name}")
     title = f"{dataset.variant}: {len(titles)} classes ({dataset.root})"
     return image_grid(images, titles, path, columns=min(columns, len(images)), title=title)
+
+
+# ---------------------------------------------------------------- training-stage figures
+def optimisation_progress(snapshots: dict, path: str | Path, title: str = "") -> Path:
+    """Rows: training images; columns: the observation, then the render after each epoch."""
+    plt = _pyplot()
+    observations, renders = snapshots["observations"], snapshots["renders"]
+    epochs = renders.shape[0]
+    columns = [0] + sorted(set(np.linspace(1, epochs - 1, min(4, epochs - 1)).astype(int).tolist()))
+    rows = len(observations)
+    fig, axes = plt.subplots(rows, len(columns) + 1, figsize=(2.2 * (len(columns) + 1), 1.75 * rows + 0.5),
+                             squeeze=False)
+    for r in range(rows):
+        axes[r, 0].imshow(np.clip(observations[r], 0, 1))
+        axes[r, 0].set_title("observation" if r == 0 else "", fontsize=8)
+        for c, epoch in enumerate(columns, start=1):
+            axes[r, c].imshow(np.clip(renders[epoch, r], 0, 1))
+            if r == 0:
+                axes[r, c].set_title("initial" if epoch == 0 else f"epoch {epoch}", fontsize=8)
+    for ax in axes.flat:
+        ax.axis("off")
+    fig.suptitle(title or "scene optimisation", fontsize=10)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def loss_curve(rows: list[dict], path: str | Path, title: str = "") -> Path:
+    """Mean L2 loss per pass, material and global passes coloured apart."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6, 3))
+    x = np.arange(len(rows))
+    losses = np.array([float(r["loss"]) for r in rows])
+    for phase, colour in (("materials", "tab:orange"), ("globals", "tab:blue")):
+        mask = np.array([r["phase"] == phase for r in rows])
+        ax.scatter(x[mask], losses[mask], s=10, color=colour, label=f"{phase} pass")
+    ax.plot(x, losses, color="0.6", lw=0.8, zorder=0)
+    ax.set_yscale("log")
+    ax.set_xlabel("pass")
+    ax.set_ylabel("mean squared error")
+    ax.legend(fontsize=8)
+    ax.set_title(title or "scene optimisation loss", fontsize=10)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def gmm_priors(prior, materials: dict, path: str | Path) -> Path:
+    """Each GMM prior's density over the fitted materials it was fitted to (a rug and a histogram)."""
+    from .fit.priors import GMM_VARIABLES
+
+    plt = _pyplot()
+    panels = [("colour", i, name) for i, name in enumerate(("red", "green", "blue"))] + \
+             [(v, 0, v) for v in GMM_VARIABLES if v != "colour"]
+    fig, axes = plt.subplots(2, 4, figsize=(12, 5))
+    for ax, (variable, dim, label) in zip(axes.flat, panels):
+        g = prior.gmms[variable]
+        values = np.array([np.atleast_1d(m[variable])[dim] for m in materials.values()])
+        lo, hi = min(values.min(), (g.means[:, dim] - 3 * np.sqrt(g.variances[:, dim])).min()), \
+            max(values.max(), (g.means[:, dim] + 3 * np.sqrt(g.variances[:, dim])).max())
+        grid = np.linspace(lo, hi, 400)
+        density = sum(w * np.exp(-0.5 * (grid - m) ** 2 / v) / np.sqrt(2 * np.pi * v)
+                      for w, m, v in zip(g.weights, g.means[:, dim], g.variances[:, dim]))
+        ax.hist(values, bins=12, density=True, color="0.8", label="fitted materials")
+        ax.plot(grid, density, color="tab:red", label="GMM prior (marginal)")
+        ax.plot(values, np.zeros_like(values), "|", color="k", ms=12)
+        ax.set_title(label, fontsize=9)
+    axes.flat[-1].axis("off")
+    axes.flat[0].legend(fontsize=7)
+    fig.suptitle("GMM priors over the optimised materials", fontsize=10)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def reparametrisation(prior, path: str | Path, samples: int = 20000, seed: int = 0) -> Path:
+    """For each variable: prior samples in the natural space and in the unconstrained space,
+    with the pushed-back density log p(z) drawn over the latter."""
+    from .fit.priors import SLICES
+
+    plt = _pyplot()
+    rng = np.random.default_rng(seed)
+    x = prior.sample_constrained(rng, samples)
+    z = prior.unconstrain(x)
+    panels = [("shift", 0, "shift x (m)"), ("theta", None, "theta (rad)"), ("scale", 0, "scale x (m)"),
+              ("class_probabilities", 0, "class: P(sphere)"), ("colour", 0, "colour red"),
+              ("ambient", None, "ambient"), ("diffuse", None, "diffuse"), ("specular", None, "specular"),
+              ("shininess", None, "shininess")]
+    zkey = {"class_probabilities": "kappa"}
+    fig, axes = plt.subplots(2, len(panels), figsize=(2.1 * len(panels), 4.4))
+    for c, (name, dim, label) in enumerate(panels):
+        values = x[name] if dim is None else x[name][:, dim]
+        axes[0, c].hist(values, bins=60, density=True, color="tab:blue", alpha=0.7)
+        axes[0, c].set_title(label, fontsize=8)
+        column = SLICES[zkey.get(name, name)].start + (dim or 0)
+        axes[1, c].hist(z[:, column], bins=60, density=True, color="tab:green", alpha=0.7)
+        if name in ("theta", "ambient", "diffuse", "specular", "shininess"):
+            grid = np.linspace(*np.percentile(z[:, column], [0.5, 99.5]), 300)
+            zz = np.zeros((len(grid), z.shape[1]))
+            zz[:, column] = grid
+            part = name
+            axes[1, c].plot(grid, np.exp(np.asarray(prior.log_prob_parts(zz)[part])), color="k", lw=1)
+        axes[1, c].set_xlabel("unconstrained z", fontsize=7)
+        for ax in axes[:, c]:
+            ax.tick_params(labelsize=6)
+    axes[0, 0].set_ylabel("natural space", fontsize=8)
+    axes[1, 0].set_ylabel("unconstrained", fontsize=8)
+    fig.suptitle("reparametrisation: prior samples before and after the bijectors (black: p(z))", fontsize=10)
+    fig.tight_layout()
+    return save_figure(fig, path)

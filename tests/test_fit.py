@@ -249,3 +249,11 @@ def test_cli_fit_errors_are_one_line(tmp_path):
         model_dir.mkdir()
         (model_dir / "model.json").write_text(json.dumps({"format": "mitsuba-p3-model", "version": 1, "stages": {}}))
         FittedModel(model_dir).channels
+
+
+def test_figure_script_writes_every_figure(tiny_model, tmp_path):
+    result = subprocess.run([sys.executable, "scripts/plot_fit.py", str(tiny_model.root), "--out", str(tmp_path),
+                             "--samples", "6"], capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    for name in ("progress", "loss", "materials", "gmm_priors", "reparametrisation", "prior_predictive"):
+        assert (tmp_path / f"{name}.png").stat().st_size > 1000

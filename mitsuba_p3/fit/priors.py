@@ -280,3 +280,22 @@ def fit_priors(materials: dict[str, dict], config: PriorConfig | None = None) ->
 def class_of(probabilities) -> np.ndarray:
     """The rendered shape class kappa of relaxed one-hot values: the argmax."""
     return np.argmax(np.asarray(probabilities), axis=-1)
+
+
+def render_params(x: dict) -> dict[str, np.ndarray]:
+    """Constrained values (numpy, batched) -> the renderer contract's object parameters.
+
+    The class is the argmax of the relaxed one-hot; colours are clipped to [0, 1],
+    Phong weights to >= 0 and the shininess to >= 1 (the GMMs have unbounded support).
+    """
+    return {
+        "shift": np.asarray(x["shift"], np.float32),
+        "theta": np.asarray(x["theta"], np.float32),
+        "scale": np.asarray(x["scale"], np.float32),
+        "kappa": class_of(x["class_probabilities"]).astype(np.int32),
+        "colour": np.clip(np.asarray(x["colour"], np.float32), 0.0, 1.0),
+        "ambient": np.maximum(np.asarray(x["ambient"], np.float32), 0.0),
+        "diffuse": np.maximum(np.asarray(x["diffuse"], np.float32), 0.0),
+        "specular": np.maximum(np.asarray(x["specular"], np.float32), 0.0),
+        "shininess": np.maximum(np.asarray(x["shininess"], np.float32), 1.0),
+    }
