@@ -6,12 +6,17 @@ Phases, all seeded:
    them in batches, and start the chains at the best distinct ones. This is a
    cheap importance search that saves most of the burn-in.
 2. **Tuning.** ``tune_rounds`` rounds of ``tune_steps``. After each round the
-   per-dimension proposal scale becomes the chains' pooled standard deviation
-   over the round times a global factor, and the factor is moved until the
-   acceptance rate falls in ``target_acceptance`` (20-50%). The paper's single
-   scalar sigma mixes poorly across dimensions of very different scales.
-3. **Burn-in**, then **sampling** with the tuned scales fixed, so the chain is a
-   valid MH chain.
+   proposal becomes a full-covariance Gaussian: the covariance of the round's
+   draws (each chain centred on its own mean, so chains sitting in different
+   places do not inflate it), times 2.38^2/d (adaptive Metropolis, Haario et
+   al. 2001), times a global factor moved until the acceptance rate falls in
+   ``target_acceptance`` (20-50%). The paper's single scalar sigma mixes poorly:
+   colour, k_a and k_d are strongly correlated, and the dimensions differ in scale.
+   After each round, chains stuck in a mode whose mean log density is more than
+   ``cull_margin`` nats below the best chain's are restarted from a randomly
+   chosen good chain (only during tuning; modes of similar density all survive).
+3. **Burn-in**, then **sampling** with the proposal fixed, so the kept draws
+   come from one valid MH kernel.
 
 The proposal is a symmetric mixture: usually a Gaussian step on every
 dimension; with probability ``class_jump_probability`` a wide step on the two
@@ -39,6 +44,7 @@ class SamplerConfig:
     class_jump_probability: float = 0.1
     class_jump_scale: float = 3.0
     init_candidates: int = 400
+    cull_margin: float = 20.0    # nats
     block: int = 50              # steps per compiled call (progress granularity)
     seed: int = 0
 
@@ -47,23 +53,24 @@ class SamplerRun(NamedTuple):
     positions: np.ndarray         # (chains, draws, 15) unconstrained
     logdensity: np.ndarray        # (chains, draws)
     accepted: np.ndarray          # (chains, draws) bool
-    scales: np.ndarray            # (15,) final proposal scales
+    scales: np.ndarray            # (15, 15) final proposal: lower-triangular factor of its covariance
     tuning: list                  # per round: acceptance, factor
     config: dict
 
 
-def _random_step(scales, jump_probability: float, jump_scale: float):
+def _random_step(scale_tril, jump_probability: float, jump_scale: float):
+    """Symmetric proposal: N(0, L L^T), or, with ``jump_probability``, a wide step on the class logits."""
     import jax
     import jax.numpy as jnp
 
-    kappa = np.zeros(len(scales), np.float32)
+    kappa = np.zeros(scale_tril.shape[0], np.float32)
     kappa[SLICES["kappa"]] = 1.0
 
     def step(key, position):
         k_choice, k_noise = jax.random.split(key)
         noise = jax.random.normal(k_noise, position.shape)
         jump = jax.random.uniform(k_choice) < jump_probability
-        return jnp.where(jump, noise * jump_scale * kappa, noise * scales)
+        return jnp.where(jump, noise * jump_scale * kappa, scale_tril @ noise)
 
     return step
 
@@ -89,6 +96,21 @@ def _block_runner(logdensity_fn: Callable, config: SamplerConfig):
     return run
 
 
+def _cull(states, logdensity: np.ndarray, margin: float, rng: np.random.Generator):
+    """Restart chains whose mean log density (last half of a round) trails the best by > margin."""
+    import jax.numpy as jnp
+
+    recent = logdensity[len(logdensity) // 2:].mean(axis=0)
+    good = np.flatnonzero(recent >= recent.max() - margin)
+    bad = np.flatnonzero(recent < recent.max() - margin)
+    if len(bad) == 0:
+        return states, 0
+    source = np.arange(len(recent))
+    source[bad] = rng.choice(good, size=len(bad))
+    index = jnp.asarray(source)
+    return type(states)(states.position[index], states.logdensity[index]), int(len(bad))
+
+
 def initial_positions(logdensity_fn: Callable, prior, config: SamplerConfig, rng: np.random.Generator):
     """The best ``chains`` of ``init_candidates`` prior draws (batched evaluation)."""
     import jax
@@ -112,7 +134,8 @@ def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
     start = initial_positions(logdensity_fn, prior, config, rng)
     states = jax.vmap(lambda z: init(z, logdensity_fn))(jnp.asarray(start))
     run = _block_runner(logdensity_fn, config)
-    scales = np.full(start.shape[1], config.initial_scale, np.float32)
+    dimension = start.shape[1]
+    scales = np.eye(dimension, dtype=np.float32) * config.initial_scale
     factor = 1.0
     tuning = []
     blocks_per_round = max(1, -(-config.tune_steps // config.block))
@@ -131,20 +154,23 @@ def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
 
     low, high = config.target_acceptance
     for round_index in range(config.tune_rounds):
-        positions, accepted = [], []
+        positions, logdensities, accepted = [], [], []
         for _ in range(blocks_per_round):
-            states, p, _, a = advance(states, "tuning")
+            states, p, l, a = advance(states, "tuning")
             positions.append(p)
+            logdensities.append(l)
             accepted.append(a)
         positions, acceptance = np.concatenate(positions), float(np.mean(np.concatenate(accepted)))
+        states, culled = _cull(states, np.concatenate(logdensities), config.cull_margin, rng)
         if acceptance < low:
             factor *= 0.5 if acceptance < low / 2 else 0.75
         elif acceptance > high:
             factor *= 2.0 if acceptance > (1 + high) / 2 else 1.4
-        spread = positions.reshape(-1, positions.shape[-1]).std(axis=0)
-        base = np.where(spread > 1e-6, spread, config.initial_scale) * 2.38 / np.sqrt(len(scales))
+        centred = (positions - positions.mean(axis=0, keepdims=True)).reshape(-1, dimension)
+        covariance = np.cov(centred, rowvar=False) + 1e-8 * np.eye(dimension)
+        base = np.linalg.cholesky(covariance) * 2.38 / np.sqrt(dimension)
         scales = (base * factor).astype(np.float32)
-        tuning.append({"round": round_index, "acceptance": acceptance, "factor": factor})
+        tuning.append({"round": round_index, "acceptance": acceptance, "factor": factor, "restarted": culled})
 
     for _ in range(-(-config.burn_in // config.block)):
         states, *_ = advance(states, "burn-in")
