@@ -256,6 +256,43 @@ def fit(
     typer.echo(json.dumps({"model": str(out), **summary}, indent=2))
 
 
+@app.command()
+def infer(
+    image: Path = typer.Argument(..., help="Observed image (PNG/JPEG, or .npy floats in [0, 1])."),
+    model: Path = typer.Option(..., "--model", help="Fitted-model folder (mitsuba-p3 fit)."),
+    output: Path = typer.Option(..., "-o", "--output", help="Folder for the posterior and its figures."),
+    chains: int = typer.Option(20, help="MH chains, run in one batched render per step."),
+    steps: int = typer.Option(1000, help="Kept draws per chain."),
+    burn_in: int = typer.Option(200, help="Burn-in steps after tuning."),
+    tune_rounds: int = typer.Option(5, help="Tuning rounds."),
+    tune_steps: int = typer.Option(200, help="Steps per tuning round."),
+    likelihood: str = typer.Option("np3", help="p3 (colour) or np3 (colour + neural)."),
+    sigma: Optional[float] = typer.Option(None, help="Colour-likelihood sigma (default 1.0; 0.35 for dark)."),
+    renderer: str = typer.Option("mitsuba", help="mitsuba (pure_callback) or jax (native tracer)."),
+    seed: int = typer.Option(0, help="Sampler seed."),
+) -> None:
+    """Sample the posterior over an image's object (pose, size, class, material); write it and figures."""
+    from .fit.model import FittedModel
+    from .infer.mcmc import SamplerConfig
+    from .infer.posterior import default_likelihood, infer_image, load_observation
+    from .infer.report import write_report
+
+    fitted = FittedModel(model)
+    observed = load_observation(image)
+    config = SamplerConfig(chains=chains, steps=steps, burn_in=burn_in, tune_rounds=tune_rounds,
+                           tune_steps=tune_steps, seed=seed)
+    bar, update = progress_bar("sampling")
+
+    def track(phase: str, done: int, total: int) -> None:
+        bar.update(bar.task_ids[0], description=phase, completed=done, total=total)
+
+    with bar:
+        posterior = infer_image(fitted, observed, default_likelihood(fitted, likelihood, sigma), config,
+                                renderer=renderer, progress=track, attrs={"image": str(image)})
+    written = write_report(posterior, fitted, output, renderer=renderer)
+    typer.echo(json.dumps(written, indent=2))
+
+
 def main() -> None:
     try:
         app()

@@ -164,3 +164,76 @@ def reparametrisation(prior, path: str | Path, samples: int = 20000, seed: int =
     fig.suptitle("reparametrisation: prior samples before and after the bijectors (black: p(z))", fontsize=10)
     fig.tight_layout()
     return save_figure(fig, path)
+
+
+# ---------------------------------------------------------------- inference figures
+def posterior_renders(observed: np.ndarray, estimate_render: np.ndarray, samples: np.ndarray,
+                      path: str | Path, title: str = "") -> Path:
+    """The observation, the render of the point estimate, and renders of posterior draws."""
+    images = [observed, estimate_render] + list(samples)
+    titles = ["observation", "point estimate"] + [f"posterior draw {i + 1}" for i in range(len(samples))]
+    return image_grid(images, titles, path, columns=min(4, len(images)), title=title or "posterior")
+
+
+def hdi_levels(density: np.ndarray, masses: Sequence[float]) -> list[float]:
+    """Density thresholds whose super-level sets hold the given probability masses."""
+    values = np.sort(density.ravel())[::-1]
+    cumulative = np.cumsum(values) / values.sum()
+    return [float(values[min(np.searchsorted(cumulative, m), len(values) - 1)]) for m in masses]
+
+
+def translation_contours(shift: np.ndarray, path: str | Path, truth: Sequence[float] | None = None,
+                         masses: Sequence[float] = (0.05, 0.2, 0.4, 0.6, 0.8)) -> Path:
+    """Posterior of the floor position: KDE contours enclosing 5-80% of the mass (HDI regions)."""
+    from scipy.stats import gaussian_kde
+
+    plt = _pyplot()
+    shift = np.asarray(shift)[:: max(1, len(shift) // 5000)]
+    kde = gaussian_kde(shift.T)
+    lo, hi = shift.min(0), shift.max(0)
+    pad = 0.25 * np.maximum(hi - lo, 1e-3)
+    x, y = np.meshgrid(np.linspace(lo[0] - pad[0], hi[0] + pad[0], 120), np.linspace(lo[1] - pad[1], hi[1] + pad[1], 120))
+    density = kde(np.vstack([x.ravel(), y.ravel()])).reshape(x.shape)
+    levels = sorted(set(hdi_levels(density, masses)))
+    fig, ax = plt.subplots(figsize=(4.5, 4))
+    contour = ax.contour(x * 100, y * 100, density, levels=levels, cmap="viridis")
+    labels = {lev: f"{int(m * 100)}%" for lev, m in zip(hdi_levels(density, masses), masses)}
+    ax.clabel(contour, fmt=lambda v: labels.get(v, ""), fontsize=7)
+    if truth is not None:
+        ax.plot(truth[0] * 100, truth[1] * 100, "r+", ms=12, label="truth")
+        ax.legend(fontsize=8)
+    ax.set_xlabel("x (cm)")
+    ax.set_ylabel("y (cm)")
+    ax.set_aspect("equal")
+    ax.set_title("translation posterior (HDI 5-80%)", fontsize=10)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def colour_posterior(colour: np.ndarray, path: str | Path, truth: Sequence[float] | None = None) -> Path:
+    """Histograms of the colour channels and swatches of posterior draws."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 4, figsize=(12, 2.8))
+    for c, (name, tint) in enumerate(zip("RGB", ("tab:red", "tab:green", "tab:blue"))):
+        axes[c].hist(colour[:, c], bins=50, color=tint, alpha=0.8, density=True)
+        if truth is not None:
+            axes[c].axvline(truth[c], color="k", ls="--")
+        axes[c].set_title(f"colour {name}", fontsize=9)
+    rng = np.random.default_rng(0)
+    swatches = np.clip(colour[rng.choice(len(colour), size=64)], 0, 1).reshape(8, 8, 3)
+    axes[3].imshow(swatches, interpolation="nearest")
+    axes[3].set_title("64 posterior draws", fontsize=9)
+    axes[3].axis("off")
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def trace_plot(idata, path: str | Path, variables: Sequence[str] = ("shift", "scale", "colour", "kappa")) -> Path:
+    """ArviZ trace plot of the main variables."""
+    import arviz as az
+
+    plt = _pyplot()
+    axes = az.plot_trace(idata, var_names=list(variables), compact=True, figsize=(10, 2.2 * len(variables)))
+    fig = np.asarray(axes).ravel()[0].figure
+    fig.tight_layout()
+    return save_figure(fig, path)

@@ -110,16 +110,20 @@ class Dataset:
 
 def load_image(path: Path, resolution: tuple[int, int]) -> np.ndarray:
     """Read an image and resize it (area averaging) to ``resolution`` = (H, W), same aspect."""
+    return resize_image(read_png(path), resolution, str(path))
+
+
+def resize_image(image: np.ndarray, resolution: tuple[int, int], source: str = "image") -> np.ndarray:
+    """Resize (H, W, 3) float [0, 1] to ``resolution`` by area averaging; the aspect must match."""
     from PIL import Image
 
-    image = read_png(path)
     height, width = resolution
     h, w = image.shape[:2]
     if abs((w / h) / (width / height) - 1.0) > ASPECT_TOLERANCE:
-        raise ImageError(f"{path}: aspect {w}x{h} (W x H) differs from the inference resolution "
+        raise ImageError(f"{source}: aspect {w}x{h} (W x H) differs from the inference resolution "
                          f"{width}x{height}; crop it to {width}:{height} first")
     if (h, w) == (height, width):
-        return image
+        return np.asarray(image, np.float32)
     channels = [np.asarray(Image.fromarray(image[..., c], mode="F").resize((width, height), Image.BOX))
                 for c in range(3)]
     return np.clip(np.stack(channels, axis=-1), 0.0, 1.0).astype(np.float32)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import pickle
 from dataclasses import dataclass
-from functools import lru_cache, partial
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -56,13 +56,31 @@ def vgg_features(images, depth: int = len(LAYERS), weights=None) -> list:
     x = (jnp.asarray(images, jnp.float32) - IMAGENET_MEAN) / IMAGENET_STD
     outputs = []
     for name, (kernel, bias) in zip(LAYERS[:depth], weights[:depth]):
-        pre = jax.lax.conv_general_dilated(x, kernel, (1, 1), "SAME",
-                                           dimension_numbers=("NHWC", "HWIO", "NHWC")) + bias
+        pre = _conv3x3(x, kernel) + bias
         outputs.append(pre)
         x = jax.nn.relu(pre)
         if name in POOL_AFTER:
             x = jax.lax.reduce_window(x, -jnp.inf, jax.lax.max, (1, 2, 2, 1), (1, 2, 2, 1), "VALID")
     return outputs
+
+
+def _conv3x3(x, kernel):
+    """'SAME' 3x3 convolution, NHWC x HWIO. Tiny ones (the selected channels of conv1_1:
+    3 in, 3 out) run as 27 fused multiply-adds, 7x faster than XLA CPU's convolution."""
+    import jax
+    import jax.numpy as jnp
+
+    c_in, c_out = kernel.shape[2], kernel.shape[3]
+    if c_in * c_out > 64:
+        return jax.lax.conv_general_dilated(x, kernel, (1, 1), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    height, width = x.shape[-3], x.shape[-2]
+    padded = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)))
+    out = 0.0
+    for dy in range(3):
+        for dx in range(3):
+            for c in range(c_in):
+                out = out + padded[:, dy:dy + height, dx:dx + width, c, None] * kernel[dy, dx, c]
+    return out
 
 
 @dataclass(frozen=True)
@@ -108,10 +126,19 @@ def select_channels(losses: dict[str, np.ndarray], k: int = 3) -> list[Channel]:
 
 
 def selected_features(images, channels: list[Channel], weights=None):
-    """The selected channels' feature maps, a list of (B, h, w) arrays (JAX; differentiable)."""
+    """The selected channels' feature maps, a list of (B, h, w) arrays (JAX; differentiable).
+
+    Layers below the deepest selected one run in full (they feed it); the deepest
+    layer computes only its selected channels (3 of 64 for conv1_1: 20x less work).
+    """
+    weights = list(weights if weights is not None else vgg16_weights())
     depth = max(c.depth for c in channels)
+    last = sorted({c.channel for c in channels if c.depth == depth})
+    kernel, bias = weights[depth - 1]
+    weights[depth - 1] = (kernel[..., last], bias[last])
     outputs = vgg_features(images, depth, weights)
-    return [outputs[c.depth - 1][..., c.channel] for c in channels]
+    return [outputs[c.depth - 1][..., last.index(c.channel) if c.depth == depth else c.channel]
+            for c in channels]
 
 
 def neural_distance(features_a, features_b):

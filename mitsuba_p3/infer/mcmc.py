@@ -6,10 +6,10 @@ Phases, all seeded:
    them in batches, and start the chains at the best distinct ones. This is a
    cheap importance search that saves most of the burn-in.
 2. **Tuning.** ``tune_rounds`` rounds of ``tune_steps``. After each round the
-   proposal becomes a full-covariance Gaussian: the covariance of the round's
-   draws (each chain centred on its own mean, so chains sitting in different
-   places do not inflate it), times 2.38^2/d (adaptive Metropolis, Haario et
-   al. 2001), times a global factor moved until the acceptance rate falls in
+   proposal becomes a full-covariance Gaussian: the covariance of the last half
+   of the round's draws, pooled over chains (their spread is the best estimate of
+   the posterior's width while each chain has moved little), times 2.38^2/d
+   (adaptive Metropolis, Haario et al. 2001), times a global factor moved until the acceptance rate falls in
    ``target_acceptance`` (20-50%). The paper's single scalar sigma mixes poorly:
    colour, k_a and k_d are strongly correlated, and the dimensions differ in scale.
    After each round, chains stuck in a mode whose mean log density is more than
@@ -18,9 +18,27 @@ Phases, all seeded:
 3. **Burn-in**, then **sampling** with the proposal fixed, so the kept draws
    come from one valid MH kernel.
 
-The proposal is a symmetric mixture: usually a Gaussian step on every
-dimension; with probability ``class_jump_probability`` a wide step on the two
-class logits only, so chains can move between shape classes.
+The proposal is a symmetric mixture of three moves:
+
+- usually a Gaussian step on every dimension;
+- with probability ``class_jump_probability``, a wide step on the two class
+  logits only;
+- with probability ``mode_jump_probability``, a *mode jump* (Tjelmeland and
+  Hegstad, 2001). A mode is a shape class times a material kind (the specular
+  weight's GMM component: matte or shiny); the posterior has separated modes
+  along both. The chain jumps from mode m to another mode m' by adding
+  mu_m' - mu_m, the difference between the modes' mean positions learnt during
+  tuning. So a matte cube at its best size and colour is proposed as a shiny
+  cylinder at that mode's best values. The jump is void unless it lands in mode
+  m', so the reverse jump is always available and the proposal stays symmetric.
+
+After every random-walk step comes a **symmetry move**: turn the object by 90
+degrees (swapping its x and y half-extents), or by 180 degrees. Every primitive
+(box, ellipsoid, elliptic cylinder) looks exactly the same after it, so the
+likelihood does not change and the move costs no render. It is accepted with
+the MH ratio of the yaw prior (always, for the uniform yaw), with the Jacobian
+of the yaw bijector included. Without it, chains stay in one of the four
+equivalent yaw modes and R-hat never settles.
 """
 from __future__ import annotations
 
@@ -42,7 +60,9 @@ class SamplerConfig:
     initial_scale: float = 0.05
     target_acceptance: tuple = (0.2, 0.5)
     class_jump_probability: float = 0.1
+    mode_jump_probability: float = 0.2
     class_jump_scale: float = 3.0
+    symmetry_moves: bool = True
     init_candidates: int = 400
     cull_margin: float = 20.0    # nats
     block: int = 50              # steps per compiled call (progress granularity)
@@ -58,42 +78,117 @@ class SamplerRun(NamedTuple):
     config: dict
 
 
-def _random_step(scale_tril, jump_probability: float, jump_scale: float):
-    """Symmetric proposal: N(0, L L^T), or, with ``jump_probability``, a wide step on the class logits."""
+MODES = 6  # 3 shape classes x 2 material kinds
+
+
+def mode_threshold(prior) -> float:
+    """Unconstrained specular value between its GMM's two components (inf for one component)."""
+    g = prior.gmms["specular"]
+    if len(g.weights) < 2:
+        return float("inf")
+    centres = (np.sort(g.means[:, 0]) - g.mean[0]) / g.std[0]
+    return float(centres[:2].mean())
+
+
+def mode_of(z, threshold: float, xp=np):
+    """Mode label of positions (..., 15): class * 2 + (specular above the threshold)."""
+    k = SLICES["kappa"].start
+    logits = xp.stack([z[..., k], z[..., k + 1], xp.zeros_like(z[..., k])], axis=-1)
+    shiny = (z[..., SLICES["specular"].start] > threshold).astype(xp.int32)
+    return xp.argmax(logits, axis=-1).astype(xp.int32) * 2 + shiny
+
+
+def _random_step(scale_tril, mode_means, mode_known, threshold: float, config: SamplerConfig):
+    """The symmetric proposal mixture of the module docstring (mode_means: (MODES, 15))."""
     import jax
     import jax.numpy as jnp
 
-    kappa = np.zeros(scale_tril.shape[0], np.float32)
-    kappa[SLICES["kappa"]] = 1.0
+    kappa_dims = np.zeros(scale_tril.shape[0], np.float32)
+    kappa_dims[SLICES["kappa"]] = 1.0
 
     def step(key, position):
-        k_choice, k_noise = jax.random.split(key)
+        k_choice, k_noise, k_target = jax.random.split(key, 3)
         noise = jax.random.normal(k_noise, position.shape)
-        jump = jax.random.uniform(k_choice) < jump_probability
-        return jnp.where(jump, noise * jump_scale * kappa, scale_tril @ noise)
+        u = jax.random.uniform(k_choice)
+        current = mode_of(position, threshold, jnp)
+        target = (current + jax.random.randint(k_target, (), 1, MODES)) % MODES
+        jump = mode_means[target] - mode_means[current]
+        lands = (mode_of(position + jump, threshold, jnp) == target) & mode_known[target] & mode_known[current]
+        mode_jump = jnp.where(lands, jump, 0.0)
+        walk = scale_tril @ noise
+        logits = noise * config.class_jump_scale * kappa_dims
+        return jnp.where(u < config.mode_jump_probability, mode_jump,
+                         jnp.where(u < config.mode_jump_probability + config.class_jump_probability, logits, walk))
 
     return step
 
 
-def _block_runner(logdensity_fn: Callable, config: SamplerConfig):
+def _symmetry_move(prior):
+    """An MH move over the primitives' exact symmetries (see the module docstring); no render."""
+    import jax
+    import jax.numpy as jnp
+
+    t = SLICES["theta"].start
+    sx, sy = SLICES["scale"].start, SLICES["scale"].start + 1
+    turns = jnp.array([np.pi / 2, np.pi, -np.pi / 2])
+    concentration = prior.config.theta_concentration
+
+    def move(key, state):
+        k_choice, k_accept = jax.random.split(key)
+        choice = jax.random.randint(k_choice, (), 0, 3)
+        z = state.position
+        theta = -jnp.pi + 2 * jnp.pi * jax.nn.sigmoid(z[t])
+        turned = jnp.mod(theta + turns[choice] + jnp.pi, 2 * jnp.pi) - jnp.pi
+        u = jnp.clip((turned + jnp.pi) / (2 * jnp.pi), 1e-7, 1 - 1e-7)
+        new = z.at[t].set(jnp.log(u) - jnp.log1p(-u))
+        swapped = new.at[sx].set(z[sy]).at[sy].set(z[sx])
+        new = jnp.where(choice == 1, new, swapped)
+        # log pi(z') - log pi(z) + log|det dz'/dz| reduces to the yaw prior's ratio
+        log_ratio = concentration * (jnp.cos(turned) - jnp.cos(theta))
+        accept = jnp.log(jax.random.uniform(k_accept)) < log_ratio
+        # the log joint changes only through the prior's yaw term (likelihood and scale prior are invariant)
+        new_logdensity = state.logdensity + prior.log_prob(new) - prior.log_prob(z)
+        return type(state)(jnp.where(accept, new, z), jnp.where(accept, new_logdensity, state.logdensity))
+
+    return move
+
+
+def _block_runner(logdensity_fn: Callable, prior, config: SamplerConfig):
     """A jitted function running ``config.block`` MH steps of every chain."""
     import jax
     from blackjax.mcmc.random_walk import build_additive_step
 
     kernel = build_additive_step()
+    symmetry = _symmetry_move(prior)
+    threshold = mode_threshold(prior)
 
     @jax.jit
-    def run(key, states, scales):
-        step_fn = _random_step(scales, config.class_jump_probability, config.class_jump_scale)
+    def run(key, states, scales, mode_means, mode_known):
+        step_fn = _random_step(scales, mode_means, mode_known, threshold, config)
 
         def one_step(states, key):
-            keys = jax.random.split(key, config.chains)
+            k_walk, k_symmetry = jax.random.split(key)
+            keys = jax.random.split(k_walk, config.chains)
             states, info = jax.vmap(lambda k, s: kernel(k, s, logdensity_fn, step_fn))(keys, states)
+            if config.symmetry_moves:
+                states = jax.vmap(symmetry)(jax.random.split(k_symmetry, config.chains), states)
             return states, (states.position, states.logdensity, info.is_accepted)
 
         return jax.lax.scan(one_step, states, jax.random.split(key, config.block))
 
     return run
+
+
+def _mode_means(positions: np.ndarray, threshold: float, min_share: float = 0.01):
+    """Mean position of each mode among draws (modes holding >= 1% of them are 'known')."""
+    labels = mode_of(positions, threshold)
+    means = np.zeros((MODES, positions.shape[1]), np.float32)
+    known = np.zeros(MODES, bool)
+    for m in range(MODES):
+        members = positions[labels == m]
+        if len(members) >= max(1, min_share * len(positions)):
+            means[m], known[m] = members.mean(axis=0), True
+    return means, known
 
 
 def _cull(states, logdensity: np.ndarray, margin: float, rng: np.random.Generator):
@@ -133,10 +228,13 @@ def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
     key = jax.random.PRNGKey(config.seed)
     start = initial_positions(logdensity_fn, prior, config, rng)
     states = jax.vmap(lambda z: init(z, logdensity_fn))(jnp.asarray(start))
-    run = _block_runner(logdensity_fn, config)
+    run = _block_runner(logdensity_fn, prior, config)
     dimension = start.shape[1]
     scales = np.eye(dimension, dtype=np.float32) * config.initial_scale
     factor = 1.0
+    mode_means = np.zeros((MODES, dimension), np.float32)
+    mode_known = np.zeros(MODES, bool)
+    threshold = mode_threshold(prior)
     tuning = []
     blocks_per_round = max(1, -(-config.tune_steps // config.block))
     total = (config.tune_rounds * blocks_per_round + -(-config.burn_in // config.block)
@@ -146,7 +244,8 @@ def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
     def advance(states, phase):
         nonlocal key, done
         key, sub = jax.random.split(key)
-        states, (positions, logdensity, accepted) = run(sub, states, jnp.asarray(scales))
+        states, (positions, logdensity, accepted) = run(sub, states, jnp.asarray(scales), jnp.asarray(mode_means),
+                                                        jnp.asarray(mode_known))
         done += config.block
         if progress:
             progress(phase, done, total)
@@ -166,11 +265,13 @@ def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
             factor *= 0.5 if acceptance < low / 2 else 0.75
         elif acceptance > high:
             factor *= 2.0 if acceptance > (1 + high) / 2 else 1.4
-        centred = (positions - positions.mean(axis=0, keepdims=True)).reshape(-1, dimension)
-        covariance = np.cov(centred, rowvar=False) + 1e-8 * np.eye(dimension)
+        covariance = np.cov(positions[len(positions) // 2:].reshape(-1, dimension), rowvar=False)
+        covariance += 1e-8 * np.eye(dimension)
         base = np.linalg.cholesky(covariance) * 2.38 / np.sqrt(dimension)
         scales = (base * factor).astype(np.float32)
-        tuning.append({"round": round_index, "acceptance": acceptance, "factor": factor, "restarted": culled})
+        mode_means, mode_known = _mode_means(positions.reshape(-1, dimension), threshold)
+        tuning.append({"round": round_index, "acceptance": acceptance, "factor": factor, "restarted": culled,
+                       "modes_seen": mode_known.tolist()})
 
     for _ in range(-(-config.burn_in // config.block)):
         states, *_ = advance(states, "burn-in")

@@ -213,6 +213,9 @@ class MitsubaRenderer(Renderer):
     # ------------------------------------------------------------------ render
     def render_drjit(self, p: DrParams) -> mi.TensorXf:
         """Render on Dr.Jit arrays; returns a (B, H, W, 3) tensor that AD can differentiate."""
+        # Renders may run on another thread than the one that made this renderer (JAX's
+        # pure_callback runs on XLA's thread): a fresh Dr.Jit scope orders their variables.
+        dr.detail.new_scope(dr.JitBackend.LLVM)
         self._set_pattern(p)
         colour = self._shade(p)
         return mi.TensorXf(dr.ravel(colour), shape=(p.batch, self.height, self.width, 3))

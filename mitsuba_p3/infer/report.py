@@ -1,0 +1,69 @@
+"""Write a posterior and the figures a person looks at into a folder."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .. import plots
+from ..fit.model import FittedModel
+from .posterior import Posterior
+
+
+def estimate_params(estimate: dict) -> dict[str, np.ndarray]:
+    """The renderer contract's object parameters of a point estimate."""
+    return {"shift": np.asarray(estimate["shift"], np.float32), "theta": np.float32(estimate["theta"]),
+            "scale": np.asarray(estimate["scale"], np.float32), "kappa": np.int32(estimate["kappa"]),
+            "colour": np.clip(np.asarray(estimate["colour"], np.float32), 0, 1),
+            "ambient": np.float32(max(estimate["ambient"], 0)), "diffuse": np.float32(max(estimate["diffuse"], 0)),
+            "specular": np.float32(max(estimate["specular"], 0)),
+            "shininess": np.float32(max(estimate["shininess"], 1))}
+
+
+def draw_params(posterior: Posterior, indices: np.ndarray) -> dict[str, np.ndarray]:
+    """Contract parameters of some posterior draws (batched)."""
+    get = lambda name: posterior.draws(name)[indices]  # noqa: E731
+    return {"shift": get("shift").astype(np.float32), "theta": get("theta").astype(np.float32),
+            "scale": get("scale").astype(np.float32), "kappa": get("kappa").astype(np.int32),
+            "colour": np.clip(get("colour"), 0, 1).astype(np.float32),
+            "ambient": np.maximum(get("ambient"), 0).astype(np.float32),
+            "diffuse": np.maximum(get("diffuse"), 0).astype(np.float32),
+            "specular": np.maximum(get("specular"), 0).astype(np.float32),
+            "shininess": np.maximum(get("shininess"), 1).astype(np.float32)}
+
+
+def write_report(posterior: Posterior, fitted: FittedModel, out: str | Path, renderer: str = "mitsuba",
+                 samples: int = 6, truth: dict | None = None) -> dict[str, str]:
+    """posterior.nc, summary.csv, estimate.json and the figures; returns what was written."""
+    from ..render import make_renderer
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = {"posterior": str(posterior.save(out / "posterior.nc"))}
+    summary = posterior.summary()
+    summary.to_csv(out / "summary.csv")
+    written["summary"] = str(out / "summary.csv")
+    estimate = posterior.estimate()
+    diagnostics = {"max_r_hat": float(summary["r_hat"].max()), "min_ess_bulk": float(summary["ess_bulk"].min())}
+    attrs = dict(posterior.idata.posterior.attrs)
+    estimate_file = out / "estimate.json"
+    estimate_file.write_text(json.dumps({"estimate": estimate, "diagnostics": diagnostics,
+                                         "seconds": attrs.get("seconds"), "acceptance": attrs.get("acceptance")},
+                                        indent=1))
+    written["estimate"] = str(estimate_file)
+
+    observed = np.asarray(posterior.idata.observed_data["image"].values, np.float32)
+    height, width = observed.shape[:2]
+    render = make_renderer(fitted.scene(), "mitsuba", height=height, width=width, shadows=False)
+    rng = np.random.default_rng(0)
+    indices = rng.choice(len(posterior.draws("theta")), size=samples, replace=False)
+    written["figure_renders"] = str(plots.posterior_renders(
+        observed, render.render(estimate_params(estimate)), render.render(draw_params(posterior, indices)),
+        out / "posterior.png", f"{estimate['shape']} (p = {estimate['class_frequencies'][estimate['shape']]:.2f})"))
+    written["figure_translation"] = str(plots.translation_contours(
+        posterior.draws("shift"), out / "translation.png", truth=(truth or {}).get("shift")))
+    written["figure_colour"] = str(plots.colour_posterior(posterior.draws("colour"), out / "colour.png",
+                                                          truth=(truth or {}).get("colour")))
+    written["figure_trace"] = str(plots.trace_plot(posterior.idata, out / "trace.png"))
+    return written
