@@ -42,8 +42,11 @@ def main() -> None:
             continue
         sheet = args.data / f"{variant}-sheet.png"
         if not sheet.is_file():
-            subprocess.run([sys.executable, "-m", "mitsuba_p3.cli", "benchmark", "show", str(folder), "-o", str(sheet)],
-                           check=True)
+            shown = subprocess.run([sys.executable, "-m", "mitsuba_p3.cli", "benchmark", "show", str(folder), "-o",
+                                    str(sheet)], capture_output=True, text=True)
+            if shown.returncode != 0:
+                print(f"skipping {variant}: {shown.stderr.splitlines()[0]}")
+                continue
         print(save(sheet, args.out / f"{variant}-sheet.jpg"))
         figures = args.data / "models" / variant / "figures"
         for name in PHOTOS + PLOTS:
