@@ -282,20 +282,18 @@ def class_of(probabilities) -> np.ndarray:
     return np.argmax(np.asarray(probabilities), axis=-1)
 
 
-def render_params(x: dict) -> dict[str, np.ndarray]:
-    """Constrained values (numpy, batched) -> the renderer contract's object parameters.
+def render_params(x: dict, xp=np) -> dict:
+    """Constrained values (batched or not) -> the renderer contract's object parameters.
 
     The class is the argmax of the relaxed one-hot; colours are clipped to [0, 1],
     Phong weights to >= 0 and the shininess to >= 1 (the GMMs have unbounded support).
+    ``xp`` is ``numpy`` or ``jax.numpy`` (inside the sampler).
     """
+    f32 = lambda v: xp.asarray(v, xp.float32)  # noqa: E731
     return {
-        "shift": np.asarray(x["shift"], np.float32),
-        "theta": np.asarray(x["theta"], np.float32),
-        "scale": np.asarray(x["scale"], np.float32),
-        "kappa": class_of(x["class_probabilities"]).astype(np.int32),
-        "colour": np.clip(np.asarray(x["colour"], np.float32), 0.0, 1.0),
-        "ambient": np.maximum(np.asarray(x["ambient"], np.float32), 0.0),
-        "diffuse": np.maximum(np.asarray(x["diffuse"], np.float32), 0.0),
-        "specular": np.maximum(np.asarray(x["specular"], np.float32), 0.0),
-        "shininess": np.maximum(np.asarray(x["shininess"], np.float32), 1.0),
+        "shift": f32(x["shift"]), "theta": f32(x["theta"]), "scale": f32(x["scale"]),
+        "kappa": xp.argmax(xp.asarray(x["class_probabilities"]), axis=-1).astype(xp.int32),
+        "colour": xp.clip(f32(x["colour"]), 0.0, 1.0),
+        "ambient": xp.maximum(f32(x["ambient"]), 0.0), "diffuse": xp.maximum(f32(x["diffuse"]), 0.0),
+        "specular": xp.maximum(f32(x["specular"]), 0.0), "shininess": xp.maximum(f32(x["shininess"]), 1.0),
     }

@@ -16,7 +16,7 @@ from typing import Callable
 import numpy as np
 
 from ..fit.model import FittedModel
-from ..fit.priors import Prior
+from ..fit.priors import Prior, render_params
 from .likelihood import ImageLikelihood, LikelihoodConfig
 
 OBJECT_KEYS = ("shift", "theta", "scale", "kappa", "colour", "ambient", "diffuse", "specular", "shininess")
@@ -27,14 +27,7 @@ def contract_params(prior: Prior, z) -> dict:
     """z (..., 15) -> the renderer contract's object parameters (JAX): argmax class, clipped materials."""
     import jax.numpy as jnp
 
-    x = prior.constrain(z)
-    return {
-        "shift": x["shift"], "theta": x["theta"], "scale": x["scale"],
-        "kappa": jnp.argmax(x["class_probabilities"], axis=-1).astype(jnp.int32),
-        "colour": jnp.clip(x["colour"], 0.0, 1.0),
-        "ambient": jnp.maximum(x["ambient"], 0.0), "diffuse": jnp.maximum(x["diffuse"], 0.0),
-        "specular": jnp.maximum(x["specular"], 0.0), "shininess": jnp.maximum(x["shininess"], 1.0),
-    }
+    return render_params(prior.constrain(z), xp=jnp)
 
 
 def mitsuba_render_function(renderer) -> Callable:

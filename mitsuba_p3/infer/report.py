@@ -8,29 +8,21 @@ import numpy as np
 
 from .. import plots
 from ..fit.model import FittedModel
+from ..fit.priors import render_params
 from .posterior import Posterior
 
 
 def estimate_params(estimate: dict) -> dict[str, np.ndarray]:
     """The renderer contract's object parameters of a point estimate."""
-    return {"shift": np.asarray(estimate["shift"], np.float32), "theta": np.float32(estimate["theta"]),
-            "scale": np.asarray(estimate["scale"], np.float32), "kappa": np.int32(estimate["kappa"]),
-            "colour": np.clip(np.asarray(estimate["colour"], np.float32), 0, 1),
-            "ambient": np.float32(max(estimate["ambient"], 0)), "diffuse": np.float32(max(estimate["diffuse"], 0)),
-            "specular": np.float32(max(estimate["specular"], 0)),
-            "shininess": np.float32(max(estimate["shininess"], 1))}
+    one_hot = np.eye(len(estimate["class_frequencies"]))[estimate["kappa"]]
+    return render_params({**estimate, "class_probabilities": one_hot})
 
 
 def draw_params(posterior: Posterior, indices: np.ndarray) -> dict[str, np.ndarray]:
     """Contract parameters of some posterior draws (batched)."""
-    get = lambda name: posterior.draws(name)[indices]  # noqa: E731
-    return {"shift": get("shift").astype(np.float32), "theta": get("theta").astype(np.float32),
-            "scale": get("scale").astype(np.float32), "kappa": get("kappa").astype(np.int32),
-            "colour": np.clip(get("colour"), 0, 1).astype(np.float32),
-            "ambient": np.maximum(get("ambient"), 0).astype(np.float32),
-            "diffuse": np.maximum(get("diffuse"), 0).astype(np.float32),
-            "specular": np.maximum(get("specular"), 0).astype(np.float32),
-            "shininess": np.maximum(get("shininess"), 1).astype(np.float32)}
+    names = ("shift", "theta", "scale", "class_probabilities", "colour", "ambient", "diffuse", "specular",
+             "shininess")
+    return render_params({name: posterior.draws(name)[indices] for name in names})
 
 
 def write_report(posterior: Posterior, fitted: FittedModel, out: str | Path, renderer: str = "mitsuba",
