@@ -100,7 +100,6 @@ def draw_classes(variant: str, seed: int, size: str = "full") -> dict[str, list[
     from .meshes import MESH_NAMES
 
     counts = SIZES_BY_NAME[check_size(size)][check_variant(variant)]
-    rng = np.random.default_rng([seed, 0])
     if variant == "ood":
         rng = np.random.default_rng([seed, 1])
         names = list(MESH_NAMES[:counts.test_classes])
@@ -109,6 +108,7 @@ def draw_classes(variant: str, seed: int, size: str = "full") -> dict[str, list[
         test = [ClassLabel(n, str(c), str(m), "large") for n, c, m in zip(names, colours, materials)]
         return {"train": [], "test": test}
     classes = all_classes()
+    rng = np.random.default_rng([seed, 0])  # the same stream for fsclvr, dark and room
     order = rng.permutation(len(classes))[:counts.train_classes + counts.test_classes]
     chosen = [classes[i] for i in order]
     return {"train": chosen[:counts.train_classes], "test": chosen[counts.train_classes:]}

@@ -31,6 +31,7 @@ The proposal is a symmetric mixture of three moves:
   tuning. So a matte cube at its best size and colour is proposed as a shiny
   cylinder at that mode's best values. The jump is void unless it lands in mode
   m', so the reverse jump is always available and the proposal stays symmetric.
+  (A void jump is a null move and counts as accepted in the statistics.)
 
 After every random-walk step comes a **symmetry move**: turn the object by 90
 degrees (swapping its x and y half-extents), or by 180 degrees. Every primitive
