@@ -40,6 +40,11 @@ likelihood does not change and the move costs no render. It is accepted with
 the MH ratio of the yaw prior (always, for the uniform yaw), with the Jacobian
 of the yaw bijector included. Without it, chains stay in one of the four
 equivalent yaw modes and R-hat never settles.
+
+Optionally (``colour_gibbs``) a Metropolis-within-Gibbs colour update follows:
+see :meth:`mitsuba_p3.infer.model.PosteriorModel.colour_move`. Measured on one
+fsclvr image, it raises the colour's ESS per draw about 6x, at 4x the renders per step.
+It is off by default until the other material weights get the same treatment.
 """
 from __future__ import annotations
 
@@ -64,6 +69,7 @@ class SamplerConfig:
     mode_jump_probability: float = 0.2
     class_jump_scale: float = 3.0
     symmetry_moves: bool = True
+    colour_gibbs: bool = False   # Metropolis-within-Gibbs colour updates (3 renders per step)
     init_candidates: int = 400
     cull_margin: float = 20.0    # nats
     block: int = 50              # steps per compiled call (progress granularity)
@@ -154,7 +160,7 @@ def _symmetry_move(prior):
     return move
 
 
-def _block_runner(logdensity_fn: Callable, prior, config: SamplerConfig):
+def _block_runner(logdensity_fn: Callable, prior, config: SamplerConfig, extra_move: Callable | None = None):
     """A jitted function running ``config.block`` MH steps of every chain."""
     import jax
     from blackjax.mcmc.random_walk import build_additive_step
@@ -173,6 +179,8 @@ def _block_runner(logdensity_fn: Callable, prior, config: SamplerConfig):
             states, info = jax.vmap(lambda k, s: kernel(k, s, logdensity_fn, step_fn))(keys, states)
             if config.symmetry_moves:
                 states = jax.vmap(symmetry)(jax.random.split(k_symmetry, config.chains), states)
+            if extra_move is not None:
+                states, _ = jax.vmap(extra_move)(jax.random.split(jax.random.fold_in(key, 7), config.chains), states)
             return states, (states.position, states.logdensity, info.is_accepted)
 
         return jax.lax.scan(one_step, states, jax.random.split(key, config.block))
@@ -218,8 +226,12 @@ def initial_positions(logdensity_fn: Callable, prior, config: SamplerConfig, rng
 
 
 def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
-           progress: Callable[[str, int, int], None] | None = None) -> SamplerRun:
-    """Run initialisation, tuning, burn-in and sampling; returns the kept draws."""
+           progress: Callable[[str, int, int], None] | None = None,
+           extra_move: Callable | None = None) -> SamplerRun:
+    """Run initialisation, tuning, burn-in and sampling; returns the kept draws.
+
+    ``extra_move(key, state) -> (state, accepted)``, when given, runs after every
+    random-walk step (e.g. :meth:`PosteriorModel.colour_move`)."""
     import jax
     import jax.numpy as jnp
     from blackjax.mcmc.random_walk import init
@@ -229,7 +241,7 @@ def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
     key = jax.random.PRNGKey(config.seed)
     start = initial_positions(logdensity_fn, prior, config, rng)
     states = jax.vmap(lambda z: init(z, logdensity_fn))(jnp.asarray(start))
-    run = _block_runner(logdensity_fn, prior, config)
+    run = _block_runner(logdensity_fn, prior, config, extra_move)
     dimension = start.shape[1]
     scales = np.eye(dimension, dtype=np.float32) * config.initial_scale
     factor = 1.0

@@ -16,7 +16,8 @@ from typing import Callable
 import numpy as np
 
 from ..fit.model import FittedModel
-from ..fit.priors import Prior, render_params
+from ..fit.priors import SLICES, Prior, render_params
+from ..render.contract import OBJECT_SHAPES
 from .likelihood import ImageLikelihood, LikelihoodConfig
 
 OBJECT_KEYS = ("shift", "theta", "scale", "kappa", "colour", "ambient", "diffuse", "specular", "shininess")
@@ -42,9 +43,12 @@ def mitsuba_render_function(renderer) -> Callable:
     height, width = renderer.height, renderer.width
 
     def host(*arrays):
-        batch_shape = np.shape(arrays[1])  # theta: one value per image
+        # Under vmap an argument that is not batched arrives with size-1 leading axes:
+        # broadcast every argument to the common batch shape, then flatten it.
+        leading = [np.shape(a)[:np.ndim(a) - len(OBJECT_SHAPES[k])] for k, a in zip(OBJECT_KEYS, arrays)]
+        batch_shape = np.broadcast_shapes(*leading)
         count = int(np.prod(batch_shape, dtype=np.int64))
-        params = {key: np.asarray(a).reshape((count,) + np.shape(a)[len(batch_shape):])
+        params = {key: np.broadcast_to(a, batch_shape + OBJECT_SHAPES[key]).reshape((count,) + OBJECT_SHAPES[key])
                   for key, a in zip(OBJECT_KEYS, arrays)}
         images = renderer.render(params)
         return np.asarray(images, np.float32).reshape(batch_shape + (height, width, 3))
@@ -95,3 +99,51 @@ class PosteriorModel:
     def logdensity(self, z):
         """log p(z) + log p(I | z) of one position z (15,) (JAX; vmap for many)."""
         return self.prior.log_prob(z) + self.log_likelihood(z)
+
+    def colour_move(self, key, state):
+        """Metropolis-within-Gibbs update of the colour (3 dims) of one chain's state.
+
+        Before clipping the image is affine in the colour, I = c * P + Q per pixel and
+        channel, with P and Q from two renders (colour 1 and colour 0). With the
+        Gaussian form of the colour likelihood and the colour's GMM prior, the
+        conditional of c is then a Gaussian mixture; a draw from it is an independence
+        proposal, corrected by MH with the exact log joint (clipping and the neural term
+        included). Returns (new state, accepted).
+        """
+        import jax
+        import jax.numpy as jnp
+
+        position, logdensity = state.position, state.logdensity
+        gmm = self.prior.gmms["colour"]
+        cols = slice(SLICES["colour"].start, SLICES["colour"].stop)
+        params = contract_params(self.prior, position)
+        basis = {k: jnp.stack([v, v]) for k, v in params.items()}
+        basis["colour"] = jnp.stack([jnp.ones(3), jnp.zeros(3)])
+        images = self._render(basis)
+        slope, offset = images[0] - images[1], images[1]
+        sigma2 = self.config.sigma ** 2
+        precision = jnp.sum(slope * slope, axis=(0, 1)) / sigma2                   # (3,)
+        linear = jnp.sum(slope * (self.likelihood.observed - offset), axis=(0, 1)) / sigma2
+        means, variances = jnp.asarray(gmm.means), jnp.asarray(gmm.variances)       # (K, 3)
+        post_precision = 1.0 / variances + precision
+        post_mean = (means / variances + linear) / post_precision
+        log_evidence = jnp.sum(-0.5 * jnp.log1p(variances * precision)
+                               + (variances * linear ** 2 + 2 * means * linear - precision * means ** 2)
+                               / (2 * (1 + variances * precision)), axis=1)
+        log_weights = jax.nn.log_softmax(jnp.log(jnp.asarray(gmm.weights)) + log_evidence)
+
+        def log_q(c):
+            per = -0.5 * (jnp.sum(post_precision * (c - post_mean) ** 2, axis=1)
+                          - jnp.sum(jnp.log(post_precision / (2 * jnp.pi)), axis=1))
+            return jax.scipy.special.logsumexp(log_weights + per)
+
+        k_component, k_noise, k_accept = jax.random.split(key, 3)
+        component = jax.random.categorical(k_component, log_weights)
+        proposal = post_mean[component] + jax.random.normal(k_noise, (3,)) / jnp.sqrt(post_precision[component])
+        current = jnp.asarray(gmm.mean) + jnp.asarray(gmm.std) * position[cols]
+        new_position = position.at[cols].set((proposal - gmm.mean) / gmm.std)
+        new_logdensity = self.logdensity(new_position)
+        log_ratio = new_logdensity - logdensity + log_q(current) - log_q(proposal)
+        accept = jnp.log(jax.random.uniform(k_accept)) < log_ratio
+        return (type(state)(jnp.where(accept, new_position, position), jnp.where(accept, new_logdensity, logdensity)),
+                accept)

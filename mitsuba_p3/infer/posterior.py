@@ -162,7 +162,8 @@ def infer_image(fitted: FittedModel, observed: np.ndarray, likelihood: Likelihoo
     sampler = sampler or SamplerConfig()
     model = PosteriorModel(fitted, observed, likelihood, renderer)
     start = time.perf_counter()
-    run = sample(model.logdensity, model.prior, sampler, progress)
+    run = sample(model.logdensity, model.prior, sampler, progress,
+                 extra_move=model.colour_move if sampler.colour_gibbs else None)
     seconds = time.perf_counter() - start
     info = {"model": str(fitted.root), "likelihood": likelihood.kind, "sigma": likelihood.sigma,
             "renderer": renderer, "sampler": run.config, "tuning": run.tuning, "seconds": seconds,
