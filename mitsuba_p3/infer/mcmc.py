@@ -41,10 +41,15 @@ the MH ratio of the yaw prior (always, for the uniform yaw), with the Jacobian
 of the yaw bijector included. Without it, chains stay in one of the four
 equivalent yaw modes and R-hat never settles.
 
-Optionally (``colour_gibbs``) a Metropolis-within-Gibbs colour update follows:
-see :meth:`mitsuba_p3.infer.model.PosteriorModel.colour_move`. Measured on one
-fsclvr image, it raises the colour's ESS per draw about 6x, at 4x the renders per step.
-It is off by default until the other material weights get the same treatment.
+Optionally (``material_gibbs``) every step ends with a Metropolis-within-Gibbs
+update of the colour and of (k_a, k_d, k_s). See
+:meth:`mitsuba_p3.infer.model.PosteriorModel.material_move`. The random walk then
+moves only the other dimensions: pose, class and shininess. Measured on one
+fsclvr test image (20 chains, 500 draws), the materials' ESS rises from ~35 to
+500-8500 and their R-hat falls to <= 1.03, at 9 renders per step instead of 1.
+``walks_per_step`` random-walk steps run before each material update. The pose
+still mixes slowly, so the update is off by default until the defaults can meet
+the time target.
 """
 from __future__ import annotations
 
@@ -69,7 +74,8 @@ class SamplerConfig:
     mode_jump_probability: float = 0.2
     class_jump_scale: float = 3.0
     symmetry_moves: bool = True
-    colour_gibbs: bool = False   # Metropolis-within-Gibbs colour updates (3 renders per step)
+    material_gibbs: bool = False  # Metropolis-within-Gibbs material updates (8 renders per step)
+    walks_per_step: int = 1       # random-walk steps per recorded step (before the material update)
     init_candidates: int = 400
     cull_margin: float = 20.0    # nats
     block: int = 50              # steps per compiled call (progress granularity)
@@ -173,15 +179,20 @@ def _block_runner(logdensity_fn: Callable, prior, config: SamplerConfig, extra_m
     def run(key, states, scales, mode_means, mode_known):
         step_fn = _random_step(scales, mode_means, mode_known, threshold, config)
 
-        def one_step(states, key):
+        def walk(states, key):
             k_walk, k_symmetry = jax.random.split(key)
             keys = jax.random.split(k_walk, config.chains)
             states, info = jax.vmap(lambda k, s: kernel(k, s, logdensity_fn, step_fn))(keys, states)
             if config.symmetry_moves:
                 states = jax.vmap(symmetry)(jax.random.split(k_symmetry, config.chains), states)
+            return states, info.is_accepted
+
+        def one_step(states, key):
+            k_walks, k_extra = jax.random.split(key)
+            states, accepted = jax.lax.scan(walk, states, jax.random.split(k_walks, config.walks_per_step))
             if extra_move is not None:
-                states, _ = jax.vmap(extra_move)(jax.random.split(jax.random.fold_in(key, 7), config.chains), states)
-            return states, (states.position, states.logdensity, info.is_accepted)
+                states, _ = jax.vmap(extra_move)(jax.random.split(k_extra, config.chains), states)
+            return states, (states.position, states.logdensity, accepted.mean(axis=0))
 
         return jax.lax.scan(one_step, states, jax.random.split(key, config.block))
 
@@ -227,11 +238,12 @@ def initial_positions(logdensity_fn: Callable, prior, config: SamplerConfig, rng
 
 def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
            progress: Callable[[str, int, int], None] | None = None,
-           extra_move: Callable | None = None) -> SamplerRun:
+           extra_move: Callable | None = None, walk_mask: np.ndarray | None = None) -> SamplerRun:
     """Run initialisation, tuning, burn-in and sampling; returns the kept draws.
 
     ``extra_move(key, state) -> (state, accepted)``, when given, runs after every
-    random-walk step (e.g. :meth:`PosteriorModel.colour_move`)."""
+    random-walk step (e.g. :meth:`PosteriorModel.material_move`); ``walk_mask`` (15,)
+    then limits the random walk to the dimensions that move does not update."""
     import jax
     import jax.numpy as jnp
     from blackjax.mcmc.random_walk import init
@@ -243,7 +255,8 @@ def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
     states = jax.vmap(lambda z: init(z, logdensity_fn))(jnp.asarray(start))
     run = _block_runner(logdensity_fn, prior, config, extra_move)
     dimension = start.shape[1]
-    scales = np.eye(dimension, dtype=np.float32) * config.initial_scale
+    mask = np.ones(dimension, np.float32) if walk_mask is None else np.asarray(walk_mask, np.float32)
+    scales = np.eye(dimension, dtype=np.float32) * config.initial_scale * mask
     factor = 1.0
     mode_means = np.zeros((MODES, dimension), np.float32)
     mode_known = np.zeros(MODES, bool)
@@ -280,8 +293,9 @@ def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
             factor *= 2.0 if acceptance > (1 + high) / 2 else 1.4
         covariance = np.cov(positions[len(positions) // 2:].reshape(-1, dimension), rowvar=False)
         covariance += 1e-8 * np.eye(dimension)
-        base = np.linalg.cholesky(covariance) * 2.38 / np.sqrt(dimension)
-        scales = (base * factor).astype(np.float32)
+        walked = int(mask.sum())
+        base = np.linalg.cholesky(covariance) * 2.38 / np.sqrt(walked)
+        scales = (mask[:, None] * base * factor).astype(np.float32)
         mode_means, mode_known = _mode_means(positions.reshape(-1, dimension), threshold)
         tuning.append({"round": round_index, "acceptance": acceptance, "factor": factor, "restarted": culled,
                        "modes_seen": mode_known.tolist()})

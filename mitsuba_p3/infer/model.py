@@ -104,7 +104,7 @@ class PosteriorModel:
         """Metropolis-within-Gibbs update of the colour (3 dims) of one chain's state.
 
         Before clipping the image is affine in the colour, I = c * P + Q per pixel and
-        channel, with P and Q from two renders (colour 1 and colour 0). With the
+        channel, with P and Q from two renders (colour 1/2 and colour 0). With the
         Gaussian form of the colour likelihood and the colour's GMM prior, the
         conditional of c is then a Gaussian mixture; a draw from it is an independence
         proposal, corrected by MH with the exact log joint (clipping and the neural term
@@ -118,9 +118,10 @@ class PosteriorModel:
         cols = slice(SLICES["colour"].start, SLICES["colour"].stop)
         params = contract_params(self.prior, position)
         basis = {k: jnp.stack([v, v]) for k, v in params.items()}
-        basis["colour"] = jnp.stack([jnp.ones(3), jnp.zeros(3)])
+        # colour 1/2 rather than 1: a brighter basis render would clip and bend the line
+        basis["colour"] = jnp.stack([jnp.full(3, 0.5), jnp.zeros(3)])
         images = self._render(basis)
-        slope, offset = images[0] - images[1], images[1]
+        slope, offset = 2.0 * (images[0] - images[1]), images[1]
         sigma2 = self.config.sigma ** 2
         precision = jnp.sum(slope * slope, axis=(0, 1)) / sigma2                   # (3,)
         linear = jnp.sum(slope * (self.likelihood.observed - offset), axis=(0, 1)) / sigma2
@@ -147,3 +148,75 @@ class PosteriorModel:
         accept = jnp.log(jax.random.uniform(k_accept)) < log_ratio
         return (type(state)(jnp.where(accept, new_position, position), jnp.where(accept, new_logdensity, logdensity)),
                 accept)
+
+    def weights_move(self, key, state):
+        """Metropolis-within-Gibbs update of the Phong weights k_a, k_d, k_s of one chain's state.
+
+        Before clipping the image is affine in (k_a, k_d, k_s), with the basis from four
+        renders (each weight alone at 1/2, and all at 0). Their priors are independent
+        2-component GMMs, so the conditional is a mixture of 8 trivariate Gaussians. A draw
+        from it is an independence proposal, corrected by MH with the exact log joint.
+        Returns (new state, accepted).
+        """
+        import itertools
+
+        import jax
+        import jax.numpy as jnp
+
+        names = ("ambient", "diffuse", "specular")
+        position, logdensity = state.position, state.logdensity
+        dims = jnp.array([SLICES[n].start for n in names])
+        gmms = [self.prior.gmms[n] for n in names]
+        # every combination of one component per weight: weights (C,), means and variances (C, 3)
+        combos = list(itertools.product(*[range(len(g.weights)) for g in gmms]))
+        log_w = jnp.array([sum(np.log(g.weights[i]) for g, i in zip(gmms, c)) for c in combos])
+        mu = jnp.array([[g.means[i, 0] for g, i in zip(gmms, c)] for c in combos])
+        var = jnp.array([[g.variances[i, 0] for g, i in zip(gmms, c)] for c in combos])
+        loc = jnp.array([g.mean[0] for g in gmms])
+        std = jnp.array([g.std[0] for g in gmms])
+
+        params = contract_params(self.prior, position)
+        basis = {k: jnp.stack([v] * 4) for k, v in params.items()}
+        half = jnp.array([[0.5, 0, 0], [0, 0.5, 0], [0, 0, 0.5], [0, 0, 0]])  # halves: see colour_move
+        for i, name in enumerate(names):
+            basis[name] = half[:, i]
+        images = self._render(basis).reshape(4, -1)
+        columns = 2.0 * (images[:3] - images[3]).T                                 # (pixels, 3)
+        residual = self.likelihood.observed.reshape(-1) - images[3]
+        sigma2 = self.config.sigma ** 2
+        lam = columns.T @ columns / sigma2 + 1e-9 * jnp.eye(3)
+        eta = columns.T @ residual / sigma2
+        precision = jax.vmap(jnp.diag)(1.0 / var) + lam                             # (C, 3, 3)
+        h = mu / var + eta
+        chol = jnp.linalg.cholesky(precision)
+        mean = jax.vmap(lambda c, v: jax.scipy.linalg.cho_solve((c, True), v))(chol, h)
+        log_det_p = 2 * jnp.sum(jnp.log(jax.vmap(jnp.diag)(chol)), axis=1)
+        log_evidence = (-0.5 * jnp.sum(jnp.log(var), axis=1) - 0.5 * log_det_p + 0.5 * jnp.sum(h * mean, axis=1)
+                        - 0.5 * jnp.sum(mu * mu / var, axis=1))
+        log_mix = jax.nn.log_softmax(log_w + log_evidence)
+
+        def log_q(w):
+            d = w - mean                                                            # (C, 3)
+            quad = jnp.einsum("ci,cij,cj->c", d, precision, d)
+            return jax.scipy.special.logsumexp(log_mix + 0.5 * log_det_p - 1.5 * jnp.log(2 * jnp.pi) - 0.5 * quad)
+
+        k_combo, k_noise, k_accept = jax.random.split(key, 3)
+        combo = jax.random.categorical(k_combo, log_mix)
+        noise = jax.random.normal(k_noise, (3,))
+        proposal = mean[combo] + jax.scipy.linalg.solve_triangular(chol[combo].T, noise, lower=False)
+        current = loc + std * position[dims]
+        new_position = position.at[dims].set((proposal - loc) / std)
+        new_logdensity = self.logdensity(new_position)
+        log_ratio = new_logdensity - logdensity + log_q(current) - log_q(proposal)
+        accept = jnp.log(jax.random.uniform(k_accept)) < log_ratio
+        return (type(state)(jnp.where(accept, new_position, position), jnp.where(accept, new_logdensity, logdensity)),
+                accept)
+
+    def material_move(self, key, state):
+        """The colour move, then the Phong-weights move (Metropolis-within-Gibbs over the materials)."""
+        import jax
+
+        k_colour, k_weights = jax.random.split(key)
+        state, colour_ok = self.colour_move(k_colour, state)
+        state, weights_ok = self.weights_move(k_weights, state)
+        return state, colour_ok & weights_ok

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import MitsubaP3Error
 from ..fit.model import FittedModel
-from ..fit.priors import SLICES
+from ..fit.priors import DIMENSION, SLICES
 from ..shapes import SHAPES
 from .likelihood import LikelihoodConfig
 from .mcmc import SamplerConfig, SamplerRun, sample
@@ -162,8 +162,12 @@ def infer_image(fitted: FittedModel, observed: np.ndarray, likelihood: Likelihoo
     sampler = sampler or SamplerConfig()
     model = PosteriorModel(fitted, observed, likelihood, renderer)
     start = time.perf_counter()
+    gibbs = sampler.material_gibbs
+    walk_mask = np.ones(DIMENSION, np.float32)
+    for name in ("colour", "ambient", "diffuse", "specular"):
+        walk_mask[SLICES[name]] = 0.0 if gibbs else 1.0
     run = sample(model.logdensity, model.prior, sampler, progress,
-                 extra_move=model.colour_move if sampler.colour_gibbs else None)
+                 extra_move=model.material_move if gibbs else None, walk_mask=walk_mask)
     seconds = time.perf_counter() - start
     info = {"model": str(fitted.root), "likelihood": likelihood.kind, "sigma": likelihood.sigma,
             "renderer": renderer, "sampler": run.config, "tuning": run.tuning, "seconds": seconds,
