@@ -117,6 +117,10 @@ def test_same_seed_same_benchmark(tiny_fsclvr, tmp_path):
         assert abs(a.mean() - b.mean()) <= 0.01
     with pytest.raises(MitsubaP3Error, match="different benchmark"):
         generate("fsclvr", again, seed=6, **TINY)
+    scene = again / "scene.xml"
+    scene.write_text(scene.read_text().replace('value="0.3, 0.3, 0.3"', 'value="0.5, 0.3, 0.3"'))
+    with pytest.raises(MitsubaP3Error, match="has changed since"):
+        generate("fsclvr", again, seed=5, **TINY)  # resuming under an edited world is refused
 
 
 def test_dark_is_darker_and_room_differs(tiny_fsclvr, tmp_path):

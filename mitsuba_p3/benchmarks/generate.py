@@ -112,13 +112,18 @@ def _write_text_atomic(path: Path, text: str) -> None:
     tmp.replace(path)
 
 
-def _copy_world(world: Path, out: Path, height: int, width: int, spp: int) -> None:
-    """Copy the world XML (with this run's resolution and samples) and the files it references."""
+def _world_text(world: Path, height: int, width: int, spp: int) -> str:
+    """The world XML with this run's resolution and samples per pixel."""
     text = world.read_text()
     for name, value in (("width", width), ("height", height), ("spp", spp)):
         text, n = re.subn(rf'(<default name="{name}" value=")[^"]*(")', rf"\g<1>{value}\g<2>", text)
         if n != 1:
             raise BenchmarkError(f"{world}: needs exactly one <default name=\"{name}\">")
+    return text
+
+
+def _copy_world(world: Path, out: Path, text: str) -> None:
+    """Write the world XML into the data set with the files it references."""
     for relative in re.findall(r'<string name="filename" value="([^"$]+)"', text):
         source, target = world.parent / relative, out / relative
         if not source.is_file():
@@ -164,6 +169,7 @@ def generate(variant: str, out: str | Path, seed: int = 0, size: str = "full",
               "resolution": [height, width], "spp": spp, "scene": SCENE_FILE}
     labels = {**header, "images": [label_of(im, image_overrides(im, defaults)[1]) for im in images]}
 
+    world_text = _world_text(world, height, width, spp)
     labels_path = out / LABELS_FILE
     if labels_path.is_file():
         try:
@@ -173,8 +179,12 @@ def generate(variant: str, out: str | Path, seed: int = 0, size: str = "full",
         if existing != labels:
             raise BenchmarkError(f"{out} already holds a different benchmark (labels.json differs); "
                                  "choose a new --out folder or delete it")
+        scene_path = out / SCENE_FILE
+        if scene_path.is_file() and scene_path.read_text() != world_text:
+            raise BenchmarkError(f"{world} has changed since {out} was started; finish it with the old XML, "
+                                 "or choose a new --out folder")
     out.mkdir(parents=True, exist_ok=True)
-    _copy_world(world, out, height, width, spp)
+    _copy_world(world, out, world_text)
     _write_text_atomic(labels_path, json.dumps(labels, indent=1))
 
     mi = mitsuba()
