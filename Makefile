@@ -12,7 +12,9 @@ demo: setup
 	mitsuba-p3 benchmark show out/fsclvr-small -o out/fsclvr-small.png
 	mitsuba-p3 fit out/fsclvr-small --out out/model-small --epochs 3
 	$(PYTHON) scripts/plot_fit.py out/model-small --samples 12
-	@echo "demo: look at out/fsclvr.png, out/fsclvr-small.png and out/model-small/figures/"
+	mitsuba-p3 infer $$(ls out/fsclvr-small/test/*/0.png | head -1) --model out/model-small -o out/infer-small \
+		--chains 10 --steps 300 --tune-rounds 4 --tune-steps 100 --burn-in 100
+	@echo "demo: look at out/fsclvr.png, out/fsclvr-small.png, out/model-small/figures/ and out/infer-small/"
 
 test: setup
 	$(PYTHON) -m pytest -q

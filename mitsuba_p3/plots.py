@@ -190,9 +190,10 @@ def translation_contours(shift: np.ndarray, path: str | Path, truth: Sequence[fl
     plt = _pyplot()
     shift = np.asarray(shift)[:: max(1, len(shift) // 5000)]
     kde = gaussian_kde(shift.T)
-    lo, hi = shift.min(0), shift.max(0)
-    pad = 0.25 * np.maximum(hi - lo, 1e-3)
-    x, y = np.meshgrid(np.linspace(lo[0] - pad[0], hi[0] + pad[0], 120), np.linspace(lo[1] - pad[1], hi[1] + pad[1], 120))
+    centre = (shift.min(0) + shift.max(0)) / 2
+    half = 0.625 * max(float(np.max(shift.max(0) - shift.min(0))), 2e-3)  # a square window, 25% margin
+    x, y = np.meshgrid(np.linspace(centre[0] - half, centre[0] + half, 120),
+                       np.linspace(centre[1] - half, centre[1] + half, 120))
     density = kde(np.vstack([x.ravel(), y.ravel()])).reshape(x.shape)
     levels = sorted(set(hdi_levels(density, masses)))
     fig, ax = plt.subplots(figsize=(4.5, 4))
