@@ -80,7 +80,8 @@ def test_mitsuba_and_jax_give_the_same_log_likelihood(fitted, observed):
 
 
 def test_posterior_recovers_a_phong_scene(fitted, observed, tmp_path):
-    config = SamplerConfig(chains=16, steps=600, burn_in=200, tune_rounds=6, tune_steps=100, seed=0)
+    config = SamplerConfig(chains=16, steps=400, burn_in=100, tune_rounds=6, tune_steps=100, seed=0,
+                           material_gibbs=True, walks_per_step=2)
     posterior = infer_image(fitted, observed, LikelihoodConfig("p3"), config)
     estimate = posterior.estimate()
     assert np.linalg.norm(np.subtract(estimate["shift"], TRUTH["shift"])) < 0.005
