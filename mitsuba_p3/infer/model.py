@@ -143,11 +143,7 @@ class PosteriorModel:
         proposal = post_mean[component] + jax.random.normal(k_noise, (3,)) / jnp.sqrt(post_precision[component])
         current = jnp.asarray(gmm.mean) + jnp.asarray(gmm.std) * position[cols]
         new_position = position.at[cols].set((proposal - gmm.mean) / gmm.std)
-        new_logdensity = self.logdensity(new_position)
-        log_ratio = new_logdensity - logdensity + log_q(current) - log_q(proposal)
-        accept = jnp.log(jax.random.uniform(k_accept)) < log_ratio
-        return (type(state)(jnp.where(accept, new_position, position), jnp.where(accept, new_logdensity, logdensity)),
-                accept)
+        return self._independence_mh(k_accept, state, new_position, log_q(current) - log_q(proposal))
 
     def weights_move(self, key, state):
         """Metropolis-within-Gibbs update of the Phong weights k_a, k_d, k_s of one chain's state.
@@ -206,11 +202,17 @@ class PosteriorModel:
         proposal = mean[combo] + jax.scipy.linalg.solve_triangular(chol[combo].T, noise, lower=False)
         current = loc + std * position[dims]
         new_position = position.at[dims].set((proposal - loc) / std)
+        return self._independence_mh(k_accept, state, new_position, log_q(current) - log_q(proposal))
+
+    def _independence_mh(self, key, state, new_position, log_q_ratio):
+        """Accept or reject an independence proposal with the exact log joint; (state, accepted)."""
+        import jax
+        import jax.numpy as jnp
+
         new_logdensity = self.logdensity(new_position)
-        log_ratio = new_logdensity - logdensity + log_q(current) - log_q(proposal)
-        accept = jnp.log(jax.random.uniform(k_accept)) < log_ratio
-        return (type(state)(jnp.where(accept, new_position, position), jnp.where(accept, new_logdensity, logdensity)),
-                accept)
+        accept = jnp.log(jax.random.uniform(key)) < new_logdensity - state.logdensity + log_q_ratio
+        return (type(state)(jnp.where(accept, new_position, state.position),
+                            jnp.where(accept, new_logdensity, state.logdensity)), accept)
 
     def material_move(self, key, state):
         """The colour move, then the Phong-weights move (Metropolis-within-Gibbs over the materials)."""
