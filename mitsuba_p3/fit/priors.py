@@ -25,9 +25,7 @@ them; :meth:`Prior.sample` draws from the prior with numpy.
 """
 from __future__ import annotations
 
-import json
-from dataclasses import asdict, dataclass, field
-from math import lgamma
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
