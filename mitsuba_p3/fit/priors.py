@@ -275,11 +275,6 @@ def fit_priors(materials: dict[str, dict], config: PriorConfig | None = None) ->
     return Prior(config, gmms)
 
 
-def class_of(probabilities) -> np.ndarray:
-    """The rendered shape class kappa of relaxed one-hot values: the argmax."""
-    return np.argmax(np.asarray(probabilities), axis=-1)
-
-
 def render_params(x: dict, xp=np) -> dict:
     """Constrained values (batched or not) -> the renderer contract's object parameters.
 

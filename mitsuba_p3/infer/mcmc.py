@@ -166,14 +166,14 @@ def _symmetry_move(prior):
     return move
 
 
-def _block_runner(logdensity_fn: Callable, prior, config: SamplerConfig, extra_move: Callable | None = None):
+def _block_runner(logdensity_fn: Callable, prior, threshold: float, config: SamplerConfig,
+                  extra_move: Callable | None = None):
     """A jitted function running ``config.block`` MH steps of every chain."""
     import jax
     from blackjax.mcmc.random_walk import build_additive_step
 
     kernel = build_additive_step()
     symmetry = _symmetry_move(prior)
-    threshold = mode_threshold(prior)
 
     @jax.jit
     def run(key, states, scales, mode_means, mode_known):
@@ -253,7 +253,6 @@ def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
     key = jax.random.PRNGKey(config.seed)
     start = initial_positions(logdensity_fn, prior, config, rng)
     states = jax.vmap(lambda z: init(z, logdensity_fn))(jnp.asarray(start))
-    run = _block_runner(logdensity_fn, prior, config, extra_move)
     dimension = start.shape[1]
     mask = np.ones(dimension, np.float32) if walk_mask is None else np.asarray(walk_mask, np.float32)
     scales = np.eye(dimension, dtype=np.float32) * config.initial_scale * mask
@@ -261,6 +260,7 @@ def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
     mode_means = np.zeros((MODES, dimension), np.float32)
     mode_known = np.zeros(MODES, bool)
     threshold = mode_threshold(prior)
+    run = _block_runner(logdensity_fn, prior, threshold, config, extra_move)
     tuning = []
     blocks_per_round = max(1, -(-config.tune_steps // config.block))
     total = (config.tune_rounds * blocks_per_round + -(-config.burn_in // config.block)

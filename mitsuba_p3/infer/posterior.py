@@ -15,6 +15,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..benchmarks.dataset import INFERENCE_RESOLUTION
 from ..errors import MitsubaP3Error
 from ..fit.model import FittedModel
 from ..fit.priors import DIMENSION, SLICES
@@ -24,14 +25,13 @@ from .mcmc import SamplerConfig, SamplerRun, sample
 from .model import PosteriorModel
 
 SUMMARY_VARIABLES = ("shift", "theta", "scale", "colour", "ambient", "diffuse", "specular", "shininess")
-RESOLUTION = (120, 160)
 
 
 class InferenceError(MitsubaP3Error):
     """An observation or request cannot be used for inference."""
 
 
-def load_observation(path: str | Path, resolution: tuple[int, int] = RESOLUTION) -> np.ndarray:
+def load_observation(path: str | Path, resolution: tuple[int, int] = INFERENCE_RESOLUTION) -> np.ndarray:
     """An observed image as float32 (H, W, 3) in [0, 1] at ``resolution``.
 
     PNG/JPEG (8 or 16 bit, grey or RGB, opaque RGBA) are converted; ``.npy``
