@@ -13,6 +13,7 @@ from typing import List, Optional
 import typer
 
 from .errors import MitsubaP3Error, SceneError
+from .infer.mcmc import SamplerConfig
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Bayesian inverse graphics for few-shot concept learning (Mitsuba 3 + JAX).")
@@ -261,11 +262,11 @@ def infer(
     image: Path = typer.Argument(..., help="Observed image (PNG/JPEG, or .npy floats in [0, 1])."),
     model: Path = typer.Option(..., "--model", help="Fitted-model folder (mitsuba-p3 fit)."),
     output: Path = typer.Option(..., "-o", "--output", help="Folder for the posterior and its figures."),
-    chains: int = typer.Option(20, help="MH chains, run in one batched render per step."),
-    steps: int = typer.Option(1000, help="Kept draws per chain."),
-    burn_in: int = typer.Option(200, help="Burn-in steps after tuning."),
-    tune_rounds: int = typer.Option(5, help="Tuning rounds."),
-    tune_steps: int = typer.Option(200, help="Steps per tuning round."),
+    chains: int = typer.Option(SamplerConfig.chains, help="MH chains, run in one batched render per step."),
+    steps: int = typer.Option(SamplerConfig.steps, help="Kept draws per chain."),
+    burn_in: int = typer.Option(SamplerConfig.burn_in, help="Burn-in steps after tuning."),
+    tune_rounds: int = typer.Option(SamplerConfig.tune_rounds, help="Tuning rounds."),
+    tune_steps: int = typer.Option(SamplerConfig.tune_steps, help="Steps per tuning round."),
     likelihood: str = typer.Option("np3", help="p3 (colour) or np3 (colour + neural)."),
     sigma: Optional[float] = typer.Option(None, help="Colour-likelihood sigma (default 1.0; 0.35 for dark)."),
     renderer: str = typer.Option("mitsuba", help="mitsuba (pure_callback) or jax (native tracer)."),
@@ -273,7 +274,6 @@ def infer(
 ) -> None:
     """Sample the posterior over an image's object (pose, size, class, material); write it and figures."""
     from .fit.model import FittedModel
-    from .infer.mcmc import SamplerConfig
     from .infer.posterior import default_likelihood, infer_image, load_observation
     from .infer.report import write_report
 
@@ -291,6 +291,49 @@ def infer(
                                 renderer=renderer, progress=track, attrs={"image": str(image)})
     written = write_report(posterior, fitted, output, renderer=renderer)
     typer.echo(json.dumps(written, indent=2))
+
+
+@app.command()
+def evaluate(
+    dataset: Path = typer.Argument(..., help="Benchmark folder (mitsuba-p3 benchmark generate)."),
+    model: Path = typer.Option(..., "--model", help="Fitted-model folder (mitsuba-p3 fit)."),
+    out: Path = typer.Option(..., "--out", help="Run folder: cached posteriors and tables (resumes)."),
+    likelihoods: str = typer.Option("p3,np3", help="Comma-separated: p3, np3."),
+    episodes: int = typer.Option(100, help="Episodes per N-way K-shot setting."),
+    jobs: int = typer.Option(1, help="Parallel posterior jobs (joblib)."),
+    dask: Optional[str] = typer.Option(None, "--dask", help="Dask scheduler address: run the jobs there."),
+    chains: int = typer.Option(SamplerConfig.chains, help="MH chains per posterior."),
+    steps: int = typer.Option(SamplerConfig.steps, help="Kept draws per chain."),
+    burn_in: int = typer.Option(SamplerConfig.burn_in, help="Burn-in steps after tuning."),
+    tune_rounds: int = typer.Option(SamplerConfig.tune_rounds, help="Tuning rounds."),
+    tune_steps: int = typer.Option(SamplerConfig.tune_steps, help="Steps per tuning round."),
+    renderer: str = typer.Option("mitsuba", help="mitsuba (pure_callback) or jax (native tracer)."),
+    seed: int = typer.Option(0, help="Sampler seed."),
+) -> None:
+    """Few-shot accuracy, calibration and pose error (ADI) of P3/NP3 on a benchmark's test split."""
+    from .evaluate import EvaluationConfig
+    from .evaluate import evaluate as run_evaluation
+
+    chosen = tuple(k.strip() for k in likelihoods.split(",") if k.strip())
+    unknown = [k for k in chosen if k not in ("p3", "np3")]
+    if unknown or not chosen:
+        raise MitsubaP3Error(f"unknown likelihood(s) {unknown or likelihoods!r}; choose from p3, np3")
+    if renderer not in ("mitsuba", "jax"):
+        raise MitsubaP3Error(f"unknown renderer {renderer!r}; choose mitsuba or jax")
+    config = EvaluationConfig(likelihoods=chosen, renderer=renderer, episodes=episodes, jobs=jobs, dask=dask,
+                              sampler=SamplerConfig(chains=chains, steps=steps, burn_in=burn_in,
+                                                    tune_rounds=tune_rounds, tune_steps=tune_steps, seed=seed))
+    bar, update = progress_bar("posteriors")
+
+    def track(phase: str, done: int, total: int) -> None:
+        bar.update(bar.task_ids[0], description=phase, completed=done, total=total)
+
+    with bar:
+        results = run_evaluation(dataset, model, out, config, progress=track)
+    summary = {k: {"accuracy": {s: round(100 * a["mean"], 1) for s, a in r["accuracy"].items()},
+                   "mean_adi_m": round(r["adi"]["mean"], 4)} for k, r in results.items()}
+    typer.echo((out / "accuracy.md").read_text() + "\n" + (out / "adi.md").read_text())
+    typer.echo(json.dumps({"run": str(out), **summary}, indent=2))
 
 
 def main() -> None:

@@ -1,55 +1,53 @@
-"""Random-walk Metropolis-Hastings over many chains at once (blackjax kernels, a jitted JAX loop).
+"""Metropolis-Hastings over many chains at once (blackjax's rmh kernel, a jitted JAX loop).
 
 Phases, all seeded:
 
 1. **Initialisation.** Draw ``init_candidates`` positions from the prior, score
-   them in batches, and start the chains at the best distinct ones. This is a
-   cheap importance search that saves most of the burn-in.
+   them in batches, and start the chains at the best ones, stratified over the
+   modes (below) so that every plausible mode starts with some chains.
 2. **Tuning.** ``tune_rounds`` rounds of ``tune_steps``. After each round the
-   proposal becomes a full-covariance Gaussian: the covariance of the last half
-   of the round's draws, pooled over chains (their spread is the best estimate of
-   the posterior's width while each chain has moved little), times 2.38^2/d
-   (adaptive Metropolis, Haario et al. 2001), times a global factor moved until the acceptance rate falls in
-   ``target_acceptance`` (20-50%). The paper's single scalar sigma mixes poorly:
+   walk becomes a full-covariance Gaussian (adaptive Metropolis, Haario et al.
+   2001): the within-mode covariance of the later half of the rounds so far,
+   pooled over chains and modes, times 2.38^2/d, times a factor corrected towards
+   an acceptance rate of 0.25 (inside the 20-50% band; see
+   :func:`_acceptance_correction`). The paper's single scalar sigma mixes poorly:
    colour, k_a and k_d are strongly correlated, and the dimensions differ in scale.
-   After each round, chains stuck in a mode whose mean log density is more than
-   ``cull_margin`` nats below the best chain's are restarted from a randomly
-   chosen good chain (only during tuning; modes of similar density all survive).
+   Chains whose mean log density trails the best chain's by more than
+   ``cull_margin`` nats are restarted from a good chain (tuning only).
 3. **Burn-in**, then **sampling** with the proposal fixed, so the kept draws
    come from one valid MH kernel.
 
-The proposal is a symmetric mixture of three moves:
+A *mode* is a shape class times a material kind (the specular weight's GMM
+component: matte or shiny); the posterior has separated modes along both. Each
+step of a chain is one of:
 
-- usually a Gaussian step on every dimension;
-- with probability ``class_jump_probability``, a wide step on the two class
-  logits only;
-- with probability ``mode_jump_probability``, a *mode jump* (Tjelmeland and
-  Hegstad, 2001). A mode is a shape class times a material kind (the specular
-  weight's GMM component: matte or shiny); the posterior has separated modes
-  along both. The chain jumps from mode m to another mode m' by adding
-  mu_m' - mu_m, the difference between the modes' mean positions learnt during
-  tuning. So a matte cube at its best size and colour is proposed as a shiny
-  cylinder at that mode's best values. The jump is void unless it lands in mode
-  m', so the reverse jump is always available and the proposal stays symmetric.
-  (A void jump is a null move and counts as accepted in the statistics.)
+- a **walk** (probability 1 - ``mode_jump_probability``): a Gaussian step with
+  the walk covariance;
+- a **mode jump** (Tjelmeland and Hegstad 2001): to another mode m' chosen
+  uniformly, by adding mu_m' - mu_m, the difference of the modes' mean positions
+  learnt in tuning; void unless it lands in m' (so the reverse jump is always
+  available and the proposal is symmetric). A matte cube at its best size and
+  colour is proposed as a shiny cylinder at that mode's best values. A void
+  proposal is a null move.
 
-After every random-walk step comes a **symmetry move**: turn the object by 90
-degrees (swapping its x and y half-extents), or by 180 degrees. Every primitive
-(box, ellipsoid, elliptic cylinder) looks exactly the same after it, so the
-likelihood does not change and the move costs no render. It is accepted with
-the MH ratio of the yaw prior (always, for the uniform yaw), with the Jacobian
-of the yaw bijector included. Without it, chains stay in one of the four
-equivalent yaw modes and R-hat never settles.
+(Per-mode walk covariances, with affine jumps and their Jacobian, were tried: on
+a known three-mode target their chains settled in whichever modes tuning had
+visited, so the pooled covariance stays.)
 
-Optionally (``material_gibbs``) every step ends with a Metropolis-within-Gibbs
-update of the colour and of (k_a, k_d, k_s). See
-:meth:`mitsuba_p3.infer.model.PosteriorModel.material_move`. The random walk then
-moves only the other dimensions: pose, class and shininess. Measured on one
-fsclvr test image (20 chains, 500 draws), the materials' ESS rises from ~35 to
-500-8500 and their R-hat falls to <= 1.03, at 9 renders per step instead of 1.
-``walks_per_step`` random-walk steps run before each material update. The pose
-still mixes slowly, so the update is off by default until the defaults can meet
-the time target.
+After every walk comes a **symmetry move**: turn the object by 90 degrees
+(swapping its x and y half-extents), or by 180 degrees. Every primitive (box,
+ellipsoid, elliptic cylinder) looks exactly the same after it, so the likelihood
+does not change and the move costs no render. It is accepted with the MH ratio
+of the yaw prior. Without it, chains stay in one of the four equivalent yaw
+modes and R-hat never settles.
+
+With ``material_gibbs`` (the default) every recorded step is ``walks_per_step``
+walks over pose, class and shininess, then a Metropolis-within-Gibbs update of
+the colour and of (k_a, k_d, k_s) from one render of the material bases
+(:meth:`mitsuba_p3.infer.model.PosteriorModel.material_move`). Measured on one
+fsclvr test image (10 chains, 600 draws): the materials' ESS rises from 20-200 to
+900-4700 and every R-hat falls below 1.09, for a step that costs about 2.7
+renders instead of 3.
 """
 from __future__ import annotations
 
@@ -63,19 +61,17 @@ from ..fit.priors import SLICES
 
 @dataclass
 class SamplerConfig:
-    chains: int = 20
-    steps: int = 1000            # kept draws per chain
-    burn_in: int = 200
-    tune_rounds: int = 5
-    tune_steps: int = 200
+    chains: int = 10
+    steps: int = 600             # kept draws per chain
+    burn_in: int = 50
+    tune_rounds: int = 4
+    tune_steps: int = 50
     initial_scale: float = 0.05
-    target_acceptance: tuple = (0.2, 0.5)
-    class_jump_probability: float = 0.1
+    target_acceptance: float = 0.25  # of the walk; the tuning corrects rates outside 0.2-0.3
     mode_jump_probability: float = 0.2
-    class_jump_scale: float = 3.0
     symmetry_moves: bool = True
-    material_gibbs: bool = False  # Metropolis-within-Gibbs material updates (8 renders per step)
-    walks_per_step: int = 1       # random-walk steps per recorded step (before the material update)
+    material_gibbs: bool = True  # Metropolis-within-Gibbs material updates (one basis render per step)
+    walks_per_step: int = 3      # random-walk steps per recorded step (before the material update)
     init_candidates: int = 400
     cull_margin: float = 20.0    # nats
     block: int = 50              # steps per compiled call (progress granularity)
@@ -86,12 +82,25 @@ class SamplerRun(NamedTuple):
     positions: np.ndarray         # (chains, draws, 15) unconstrained
     logdensity: np.ndarray        # (chains, draws)
     accepted: np.ndarray          # (chains, draws) bool
-    scales: np.ndarray            # (15, 15) final proposal: lower-triangular factor of its covariance
-    tuning: list                  # per round: acceptance, factor
+    proposal: dict                # the final proposal: per-mode means, Cholesky factors, known flags
+    tuning: list                  # per round: acceptance rates, factor, restarts, modes known
     config: dict
+    statistics: dict              # acceptance rates of the kept draws' walks and jumps
 
 
 MODES = 6  # 3 shape classes x 2 material kinds
+
+
+class Proposal(NamedTuple):
+    """The walk covariance and the modes' means, learnt during tuning (see the module docstring)."""
+    tril: np.ndarray              # (d, d) lower Cholesky factor of the walk covariance
+    means: np.ndarray             # (MODES, d)
+    known: np.ndarray             # (MODES,) bool: the mode held enough draws to jump to it
+
+    @classmethod
+    def isotropic(cls, scale: float, mask: np.ndarray) -> "Proposal":
+        d = len(mask)
+        return cls(np.diag(scale * mask).astype(np.float32), np.zeros((MODES, d), np.float32), np.zeros(MODES, bool))
 
 
 def mode_threshold(prior) -> float:
@@ -111,29 +120,26 @@ def mode_of(z, threshold: float, xp=np):
     return xp.argmax(logits, axis=-1).astype(xp.int32) * 2 + shiny
 
 
-def _random_step(scale_tril, mode_means, mode_known, threshold: float, config: SamplerConfig):
-    """The symmetric proposal mixture of the module docstring (mode_means: (MODES, 15))."""
+def _transition(proposal: Proposal, threshold: float, config: SamplerConfig):
+    """The symmetric proposal mixture of the module docstring, for blackjax's rmh kernel."""
     import jax
     import jax.numpy as jnp
 
-    kappa_dims = np.zeros(scale_tril.shape[0], np.float32)
-    kappa_dims[SLICES["kappa"]] = 1.0
+    tril, means, known = proposal
 
-    def step(key, position):
+    def generate(key, position):
+        """A proposal for one chain, and whether it is a mode jump."""
         k_choice, k_noise, k_target = jax.random.split(key, 3)
-        noise = jax.random.normal(k_noise, position.shape)
-        u = jax.random.uniform(k_choice)
+        walk = position + tril @ jax.random.normal(k_noise, position.shape)
+        # a mode jump shifts by the difference of the modes' means; void unless it lands in the target
         current = mode_of(position, threshold, jnp)
         target = (current + jax.random.randint(k_target, (), 1, MODES)) % MODES
-        jump = mode_means[target] - mode_means[current]
-        lands = (mode_of(position + jump, threshold, jnp) == target) & mode_known[target] & mode_known[current]
-        mode_jump = jnp.where(lands, jump, 0.0)
-        walk = scale_tril @ noise
-        logits = noise * config.class_jump_scale * kappa_dims
-        return jnp.where(u < config.mode_jump_probability, mode_jump,
-                         jnp.where(u < config.mode_jump_probability + config.class_jump_probability, logits, walk))
+        shifted = position + means[target] - means[current]
+        lands = (mode_of(shifted, threshold, jnp) == target) & known[target] & known[current]
+        is_jump = jax.random.uniform(k_choice) < config.mode_jump_probability
+        return jnp.where(is_jump, jnp.where(lands, shifted, position), walk), is_jump
 
-    return step
+    return generate
 
 
 def _symmetry_move(prior):
@@ -170,70 +176,107 @@ def _block_runner(logdensity_fn: Callable, prior, threshold: float, config: Samp
                   extra_move: Callable | None = None):
     """A jitted function running ``config.block`` MH steps of every chain."""
     import jax
-    from blackjax.mcmc.random_walk import build_additive_step
+    import jax.numpy as jnp
+    from blackjax.mcmc.random_walk import build_rmh
 
-    kernel = build_additive_step()
+    kernel = build_rmh()
     symmetry = _symmetry_move(prior)
 
     @jax.jit
-    def run(key, states, scales, mode_means, mode_known):
-        step_fn = _random_step(scales, mode_means, mode_known, threshold, config)
+    def run(key, states, proposal):
+        generate = _transition(Proposal(*proposal), threshold, config)
 
         def walk(states, key):
-            k_walk, k_symmetry = jax.random.split(key)
+            k_propose, k_walk, k_symmetry = jax.random.split(key, 3)
+            proposed, jumps = jax.vmap(generate)(jax.random.split(k_propose, config.chains), states.position)
             keys = jax.random.split(k_walk, config.chains)
-            states, info = jax.vmap(lambda k, s: kernel(k, s, logdensity_fn, step_fn))(keys, states)
+            new, info = jax.vmap(lambda k, s, p: kernel(k, s, logdensity_fn, lambda _, __: p))(
+                keys, states, proposed)
+            # record (walk accepted, walk proposed, jump accepted, jump proposed) per chain; a void
+            # proposal (no move) counts as neither
+            real = jnp.any(proposed != states.position, axis=-1)
+            is_walk, is_jump = real & ~jumps, real & jumps
+            moves = jnp.stack([info.is_accepted & is_walk, is_walk, info.is_accepted & is_jump, is_jump], axis=-1)
             if config.symmetry_moves:
-                states = jax.vmap(symmetry)(jax.random.split(k_symmetry, config.chains), states)
-            return states, info.is_accepted
+                new = jax.vmap(symmetry)(jax.random.split(k_symmetry, config.chains), new)
+            return new, moves.astype(jnp.int32)
 
         def one_step(states, key):
             k_walks, k_extra = jax.random.split(key)
-            states, accepted = jax.lax.scan(walk, states, jax.random.split(k_walks, config.walks_per_step))
+            states, moves = jax.lax.scan(walk, states, jax.random.split(k_walks, config.walks_per_step))
             if extra_move is not None:
                 states, _ = jax.vmap(extra_move)(jax.random.split(k_extra, config.chains), states)
-            return states, (states.position, states.logdensity, accepted.mean(axis=0))
+            return states, (states.position, states.logdensity, moves.sum(axis=0))
 
         return jax.lax.scan(one_step, states, jax.random.split(key, config.block))
 
     return run
 
 
-def _mode_means(positions: np.ndarray, threshold: float, min_share: float = 0.01):
-    """Mean position of each mode among draws (modes holding >= 1% of them are 'known')."""
+def learn_proposal(positions: np.ndarray, threshold: float, mask: np.ndarray, factor: float,
+                   min_share: float = 0.01) -> Proposal:
+    """The walk covariance and the modes' means from tuning draws (n, d).
+
+    The walk covariance is the within-mode covariance pooled over modes (the spread
+    between modes is the jumps' business), scaled by 2.38^2 / d (Haario et al.
+    2001) and the tuned ``factor``. A mode holding >= ``min_share`` of the draws is
+    *known* (a jump target)."""
+    dimension = positions.shape[1]
     labels = mode_of(positions, threshold)
-    means = np.zeros((MODES, positions.shape[1]), np.float32)
-    known = np.zeros(MODES, bool)
-    for m in range(MODES):
+    counts = np.bincount(labels, minlength=MODES)
+    means = np.zeros((MODES, dimension))
+    scatter = np.zeros((dimension, dimension))
+    for m in np.flatnonzero(counts):
         members = positions[labels == m]
-        if len(members) >= max(1, min_share * len(positions)):
-            means[m], known[m] = members.mean(axis=0), True
-    return means, known
+        means[m] = members.mean(axis=0)
+        scatter += (members - means[m]).T @ (members - means[m])
+    covariance = scatter / max(len(positions) - len(np.flatnonzero(counts)), 1) + 1e-8 * np.eye(dimension)
+    walked = mask > 0
+    tril = np.zeros((dimension, dimension), np.float32)
+    tril[np.ix_(walked, walked)] = (np.linalg.cholesky(covariance[np.ix_(walked, walked)])
+                                    * 2.38 / np.sqrt(walked.sum()) * factor)
+    known = counts >= max(2, min_share * len(positions))
+    return Proposal(tril, means.astype(np.float32), known)
 
 
 def _cull(states, logdensity: np.ndarray, margin: float, rng: np.random.Generator):
-    """Restart chains whose mean log density (last half of a round) trails the best by > margin."""
+    """Restart chains whose highest log density in a round trails the best chain's by > margin.
+
+    The highest, not the mean: a chain still climbing into a good mode has already
+    reached high densities, while one stuck in a poor local mode has not."""
     import jax.numpy as jnp
 
-    recent = logdensity[len(logdensity) // 2:].mean(axis=0)
-    good = np.flatnonzero(recent >= recent.max() - margin)
-    bad = np.flatnonzero(recent < recent.max() - margin)
+    peak = logdensity.max(axis=0)
+    good = np.flatnonzero(peak >= peak.max() - margin)
+    bad = np.flatnonzero(peak < peak.max() - margin)
     if len(bad) == 0:
         return states, 0
-    source = np.arange(len(recent))
+    source = np.arange(len(peak))
     source[bad] = rng.choice(good, size=len(bad))
     index = jnp.asarray(source)
     return type(states)(states.position[index], states.logdensity[index]), int(len(bad))
 
 
 def initial_positions(logdensity_fn: Callable, prior, config: SamplerConfig, rng: np.random.Generator):
-    """The best ``chains`` of ``init_candidates`` prior draws (batched evaluation)."""
+    """The best of ``init_candidates`` prior draws (batched evaluation), stratified by mode.
+
+    Chains go round-robin to the modes in order of their best candidate, so every
+    plausible mode starts with some chains; culling during tuning removes the
+    hopeless ones."""
     import jax
 
     candidates = prior.sample(rng, max(config.init_candidates, config.chains)).astype(np.float32)
     scores = np.asarray(jax.jit(jax.vmap(logdensity_fn))(candidates))
     scores = np.where(np.isfinite(scores), scores, -np.inf)
-    return candidates[np.argsort(-scores)[:config.chains]]
+    order = np.argsort(-scores)
+    labels = mode_of(candidates[order], mode_threshold(prior))
+    queues = [list(order[labels == m]) for m in dict.fromkeys(labels.tolist())]  # modes by best candidate
+    chosen = []
+    while len(chosen) < config.chains:
+        for queue in queues:
+            if queue and len(chosen) < config.chains:
+                chosen.append(queue.pop(0))
+    return candidates[np.array(chosen)]
 
 
 def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
@@ -255,10 +298,8 @@ def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
     states = jax.vmap(lambda z: init(z, logdensity_fn))(jnp.asarray(start))
     dimension = start.shape[1]
     mask = np.ones(dimension, np.float32) if walk_mask is None else np.asarray(walk_mask, np.float32)
-    scales = np.eye(dimension, dtype=np.float32) * config.initial_scale * mask
+    proposal = Proposal.isotropic(config.initial_scale, mask)
     factor = 1.0
-    mode_means = np.zeros((MODES, dimension), np.float32)
-    mode_known = np.zeros(MODES, bool)
     threshold = mode_threshold(prior)
     run = _block_runner(logdensity_fn, prior, threshold, config, extra_move)
     tuning = []
@@ -267,49 +308,67 @@ def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
              + -(-config.steps // config.block)) * config.block
     done = 0
 
-    def advance(states, phase):
+    def advance(states, phase, blocks):
+        """Run ``blocks`` compiled blocks; the per-step draws, log densities and move statistics."""
         nonlocal key, done
-        key, sub = jax.random.split(key)
-        states, (positions, logdensity, accepted) = run(sub, states, jnp.asarray(scales), jnp.asarray(mode_means),
-                                                        jnp.asarray(mode_known))
-        done += config.block
-        if progress:
-            progress(phase, done, total)
-        return states, np.asarray(positions), np.asarray(logdensity), np.asarray(accepted)
+        out = []
+        for _ in range(blocks):
+            key, sub = jax.random.split(key)
+            states, draws = run(sub, states, tuple(jnp.asarray(a) for a in proposal))
+            out.append([np.asarray(a) for a in draws])
+            done += config.block
+            if progress:
+                progress(phase, done, total)
+        return states, [np.concatenate(parts) for parts in zip(*out)]
 
-    low, high = config.target_acceptance
+    history = []
     for round_index in range(config.tune_rounds):
-        positions, logdensities, accepted = [], [], []
-        for _ in range(blocks_per_round):
-            states, p, l, a = advance(states, "tuning")
-            positions.append(p)
-            logdensities.append(l)
-            accepted.append(a)
-        positions, acceptance = np.concatenate(positions), float(np.mean(np.concatenate(accepted)))
-        states, culled = _cull(states, np.concatenate(logdensities), config.cull_margin, rng)
-        if acceptance < low:
-            factor *= 0.5 if acceptance < low / 2 else 0.75
-        elif acceptance > high:
-            factor *= 2.0 if acceptance > (1 + high) / 2 else 1.4
-        covariance = np.cov(positions[len(positions) // 2:].reshape(-1, dimension), rowvar=False)
-        covariance += 1e-8 * np.eye(dimension)
-        walked = int(mask.sum())
-        base = np.linalg.cholesky(covariance) * 2.38 / np.sqrt(walked)
-        scales = (mask[:, None] * base * factor).astype(np.float32)
-        mode_means, mode_known = _mode_means(positions.reshape(-1, dimension), threshold)
-        tuning.append({"round": round_index, "acceptance": acceptance, "factor": factor, "restarted": culled,
-                       "modes_seen": mode_known.tolist()})
+        states, (positions, logdensities, moves) = advance(states, "tuning", blocks_per_round)
+        statistics = move_statistics(moves)
+        # no culling after the first round: its chains are still converging into their modes
+        states, culled = _cull(states, logdensities, config.cull_margin, rng) if round_index else (states, 0)
+        history.append(positions[len(positions) // 4:].reshape(-1, dimension))
+        factor *= _acceptance_correction(statistics["walk_acceptance"], config.target_acceptance)
+        # the covariance window: the later half of the rounds so far (Stan-like growing windows)
+        window = np.concatenate(history[len(history) // 2:])
+        learnt = learn_proposal(window, threshold, mask, factor)
+        # a mode found earlier stays a jump target (with its last mean) when no chain is in it now
+        kept = proposal.known & ~learnt.known
+        proposal = learnt._replace(means=np.where(kept[:, None], proposal.means, learnt.means),
+                                   known=learnt.known | kept)
+        tuning.append({"round": round_index, **statistics, "factor": factor, "restarted": culled,
+                       "modes_known": proposal.known.tolist()})
 
-    for _ in range(-(-config.burn_in // config.block)):
-        states, *_ = advance(states, "burn-in")
-    positions, logdensity, accepted = [], [], []
-    for _ in range(-(-config.steps // config.block)):
-        states, p, l, a = advance(states, "sampling")
-        positions.append(p)
-        logdensity.append(l)
-        accepted.append(a)
+    states, _ = advance(states, "burn-in", -(-config.burn_in // config.block))
+    states, (positions, logdensity, moves) = advance(states, "sampling", -(-config.steps // config.block))
     # scan stacks (steps, chains, ...): move chains first and trim to the requested count
-    positions = np.concatenate(positions).swapaxes(0, 1)[:, :config.steps]
-    logdensity = np.concatenate(logdensity).swapaxes(0, 1)[:, :config.steps]
-    accepted = np.concatenate(accepted).swapaxes(0, 1)[:, :config.steps]
-    return SamplerRun(positions, logdensity, accepted, scales, tuning, asdict(config))
+    positions = positions.swapaxes(0, 1)[:, :config.steps]
+    logdensity = logdensity.swapaxes(0, 1)[:, :config.steps]
+    moves = moves.swapaxes(0, 1)[:, :config.steps]
+    return SamplerRun(positions, logdensity, (moves[..., 0] + moves[..., 2]) > 0, proposal._asdict(), tuning, asdict(config),
+                      move_statistics(moves))
+
+
+def _acceptance_correction(acceptance: float, target: float, tolerance: float = 0.05) -> float:
+    """Factor for the proposal scale that moves a random walk's acceptance rate to ``target``.
+
+    For a random walk in many dimensions the acceptance rate is about
+    2 Phi(-l sqrt(I) / 2) for a step length l (Roberts, Gelman and Gilks 1997), so l
+    scales with Phi^-1(rate / 2); the correction is the ratio of those quantiles,
+    limited to [1/4, 4] per round, and 1 within ``tolerance`` of the target. The
+    target 0.25 is near the optimal 0.234 and well inside the 20-50% band."""
+    from scipy.stats import norm
+
+    if abs(acceptance - target) <= tolerance:
+        return 1.0
+    ratio = norm.ppf(target / 2) / norm.ppf(np.clip(acceptance, 0.005, 0.95) / 2)
+    return float(np.clip(ratio, 0.25, 4.0))
+
+
+def move_statistics(moves: np.ndarray) -> dict:
+    """Acceptance rates from per-step move records (..., 4): see ``_block_runner``."""
+    moves = moves.reshape(-1, 4).sum(axis=0)
+    walk_accepted, walk_proposed, jump_accepted, jump_proposed = moves
+    return {"walk_acceptance": float(walk_accepted / max(walk_proposed, 1)),
+            "jump_acceptance": float(jump_accepted / max(jump_proposed, 1)),
+            "jumps_accepted": int(jump_accepted)}

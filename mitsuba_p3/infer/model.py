@@ -31,16 +31,19 @@ def contract_params(prior: Prior, z) -> dict:
     return render_params(prior.constrain(z), xp=jnp)
 
 
-def mitsuba_render_function(renderer) -> Callable:
+def mitsuba_render_function(renderer, bases: bool = False) -> Callable:
     """A JAX function params -> image(s) that renders with Mitsuba on the host.
 
     Works on one parameter set (image (H, W, 3)) and under ``jax.vmap`` (the
-    callback then gets all sets at once and renders them in one launch).
+    callback then gets all sets at once and renders them in one launch). With
+    ``bases`` it returns the material bases (H, W, 4, 3) of ``renderer.render_bases``.
     """
     import jax
     import jax.numpy as jnp
 
     height, width = renderer.height, renderer.width
+    pixel = (4, 3) if bases else (3,)
+    host_render = renderer.render_bases if bases else renderer.render
 
     def host(*arrays):
         # Under vmap an argument that is not batched arrives with size-1 leading axes:
@@ -50,13 +53,39 @@ def mitsuba_render_function(renderer) -> Callable:
         count = int(np.prod(batch_shape, dtype=np.int64))
         params = {key: np.broadcast_to(a, batch_shape + OBJECT_SHAPES[key]).reshape((count,) + OBJECT_SHAPES[key])
                   for key, a in zip(OBJECT_KEYS, arrays)}
-        images = renderer.render(params)
-        return np.asarray(images, np.float32).reshape(batch_shape + (height, width, 3))
+        images = host_render(params)
+        return np.asarray(images, np.float32).reshape(batch_shape + (height, width) + pixel)
 
     def render(params: dict):
         batch_shape = jnp.shape(params["theta"])
-        out = jax.ShapeDtypeStruct(batch_shape + (height, width, 3), jnp.float32)
+        out = jax.ShapeDtypeStruct(batch_shape + (height, width) + pixel, jnp.float32)
         return jax.pure_callback(host, out, *[params[k] for k in OBJECT_KEYS], vmap_method="expand_dims")
+
+    return render
+
+
+def jax_render_function(renderer, bases: bool = False) -> Callable:
+    """A JAX function params -> image(s) (or bases) that renders with the JAX tracer.
+
+    Under ``jax.vmap`` a traced shape class would turn the tracer's ``lax.switch``
+    over classes into a select that renders every class for every chain; the custom
+    vmap rule instead hands the whole batch to the tracer's batched render, which
+    maps over it and renders only each set's own class.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    shared = {k: jnp.asarray(v) for k, v in renderer.params.items() if k not in OBJECT_KEYS}
+
+    @jax.custom_batching.custom_vmap
+    def render(params: dict):
+        return renderer.render_jax({**shared, **params}, bases=bases)
+
+    @render.def_vmap
+    def render_batch(axis_size, in_batched, params):
+        flags = in_batched[0]
+        params = {k: v if flags[k] else jnp.broadcast_to(v, (axis_size,) + jnp.shape(v)) for k, v in params.items()}
+        return renderer.render_jax({**shared, **params}, bases=bases), True
 
     return render
 
@@ -82,11 +111,10 @@ class PosteriorModel:
         self.likelihood = ImageLikelihood(observed, self.config, channels)
         if renderer == "mitsuba":
             self._render = mitsuba_render_function(self.renderer)
+            self._bases = mitsuba_render_function(self.renderer, bases=True)
         else:
-            import jax.numpy as jnp
-
-            shared = {k: jnp.asarray(v) for k, v in self.renderer.params.items() if k not in OBJECT_KEYS}
-            self._render = lambda params: self.renderer.render_jax({**shared, **params})
+            self._render = jax_render_function(self.renderer)
+            self._bases = jax_render_function(self.renderer, bases=True)
 
     def render(self, z):
         """Image(s) of unconstrained position(s) z (JAX)."""
@@ -100,31 +128,57 @@ class PosteriorModel:
         """log p(z) + log p(I | z) of one position z (15,) (JAX; vmap for many)."""
         return self.prior.log_prob(z) + self.log_likelihood(z)
 
-    def colour_move(self, key, state):
-        """Metropolis-within-Gibbs update of the colour (3 dims) of one chain's state.
+    def material_move(self, key, state):
+        """Metropolis-within-Gibbs update of the materials of one chain's state: colour, then (k_a, k_d, k_s).
 
-        Before clipping the image is affine in the colour, I = c * P + Q per pixel and
-        channel, with P and Q from two renders (colour 1/2 and colour 0). With the
-        Gaussian form of the colour likelihood and the colour's GMM prior, the
-        conditional of c is then a Gaussian mixture; a draw from it is an independence
-        proposal, corrected by MH with the exact log joint (clipping and the neural term
-        included). Returns (new state, accepted).
+        One render of the material bases (:meth:`render_bases` of the renderers) makes
+        the image an explicit function of the materials at the current pose, class and
+        shininess: ``clip(c (k_a A + k_d D) + k_s S + F)``. Before clipping it is affine
+        in the colour given the weights, and affine in the weights given the colour.
+        With the Gaussian form of the colour likelihood and the GMM priors, each
+        conditional is then a Gaussian mixture; a draw from it is an independence
+        proposal, accepted by MH with the exact log joint, computed from the bases
+        without another render (clipping, truncation and the neural term included).
+        Returns (new state, both accepted).
         """
+        import jax
+
+        import jax.numpy as jnp
+
+        k_colour, k_weights = jax.random.split(key)
+        bases = self._bases(contract_params(self.prior, state.position))
+        # Both conditionals need only inner products of A, D, S and the residual r = I_obs - F,
+        # per channel: one (3, 4, 4) Gram matrix serves both moves.
+        vectors = jnp.concatenate([bases[..., :3, :], (self.likelihood.observed - bases[..., 3, :])[..., None, :]],
+                                  axis=-2).reshape(-1, 12)                       # (pixels, 4 x 3)
+        full = (vectors.T @ vectors).reshape(4, 3, 4, 3)                            # one matmul: XLA's fast path
+        gram = jnp.einsum("icjc->cij", full) / self.config.sigma ** 2
+        state, colour_ok = self._colour_move(k_colour, state, bases, gram)
+        state, weights_ok = self._weights_move(k_weights, state, bases, gram)
+        return state, colour_ok & weights_ok
+
+    def _image_from_bases(self, bases, z):
+        """The image at position z whose pose, class and shininess gave ``bases`` (H, W, 4, 3)."""
+        import jax.numpy as jnp
+
+        p = contract_params(self.prior, z)
+        A, D, S, F = (bases[..., i, :] for i in range(4))
+        return jnp.clip(p["colour"] * (p["ambient"] * A + p["diffuse"] * D) + p["specular"] * S + F, 0.0, 1.0)
+
+    def _colour_move(self, key, state, bases, gram):
+        """The colour's conditional given the weights: a 3-D Gaussian mixture (one per GMM component)."""
         import jax
         import jax.numpy as jnp
 
-        position, logdensity = state.position, state.logdensity
+        position = state.position
         gmm = self.prior.gmms["colour"]
         cols = slice(SLICES["colour"].start, SLICES["colour"].stop)
-        params = contract_params(self.prior, position)
-        basis = {k: jnp.stack([v, v]) for k, v in params.items()}
-        # colour 1/2 rather than 1: a brighter basis render would clip and bend the line
-        basis["colour"] = jnp.stack([jnp.full(3, 0.5), jnp.zeros(3)])
-        images = self._render(basis)
-        slope, offset = 2.0 * (images[0] - images[1]), images[1]
-        sigma2 = self.config.sigma ** 2
-        precision = jnp.sum(slope * slope, axis=(0, 1)) / sigma2                   # (3,)
-        linear = jnp.sum(slope * (self.likelihood.observed - offset), axis=(0, 1)) / sigma2
+        p = contract_params(self.prior, position)
+        # per channel, I = c * slope + offset with slope = k_a A + k_d D and offset = k_s S + F
+        slope = jnp.stack([p["ambient"], p["diffuse"], 0.0 * p["specular"]])
+        offset = jnp.stack([0.0, 0.0, p["specular"]])
+        precision = jnp.einsum("i,cij,j->c", slope, gram[:, :3, :3], slope)       # sum slope^2 / sigma^2
+        linear = slope @ gram[:, :3, 3].T - jnp.einsum("i,cij,j->c", slope, gram[:, :3, :3], offset)
         means, variances = jnp.asarray(gmm.means), jnp.asarray(gmm.variances)       # (K, 3)
         post_precision = 1.0 / variances + precision
         post_mean = (means / variances + linear) / post_precision
@@ -143,24 +197,18 @@ class PosteriorModel:
         proposal = post_mean[component] + jax.random.normal(k_noise, (3,)) / jnp.sqrt(post_precision[component])
         current = jnp.asarray(gmm.mean) + jnp.asarray(gmm.std) * position[cols]
         new_position = position.at[cols].set((proposal - gmm.mean) / gmm.std)
-        return self._independence_mh(k_accept, state, new_position, log_q(current) - log_q(proposal))
+        return self._independence_mh(k_accept, state, new_position, bases, log_q(current) - log_q(proposal))
 
-    def weights_move(self, key, state):
-        """Metropolis-within-Gibbs update of the Phong weights k_a, k_d, k_s of one chain's state.
-
-        Before clipping the image is affine in (k_a, k_d, k_s), with the basis from four
-        renders (each weight alone at 1/2, and all at 0). Their priors are independent
-        2-component GMMs, so the conditional is a mixture of 8 trivariate Gaussians. A draw
-        from it is an independence proposal, corrected by MH with the exact log joint.
-        Returns (new state, accepted).
-        """
+    def _weights_move(self, key, state, bases, gram):
+        """The weights' conditional given the colour: a mixture of 8 trivariate Gaussians
+        (their priors are independent 2-component GMMs)."""
         import itertools
 
         import jax
         import jax.numpy as jnp
 
         names = ("ambient", "diffuse", "specular")
-        position, logdensity = state.position, state.logdensity
+        position = state.position
         dims = jnp.array([SLICES[n].start for n in names])
         gmms = [self.prior.gmms[n] for n in names]
         # every combination of one component per weight: weights (C,), means and variances (C, 3)
@@ -171,17 +219,11 @@ class PosteriorModel:
         loc = jnp.array([g.mean[0] for g in gmms])
         std = jnp.array([g.std[0] for g in gmms])
 
-        params = contract_params(self.prior, position)
-        basis = {k: jnp.stack([v] * 4) for k, v in params.items()}
-        half = jnp.array([[0.5, 0, 0], [0, 0.5, 0], [0, 0, 0.5], [0, 0, 0]])  # halves: see colour_move
-        for i, name in enumerate(names):
-            basis[name] = half[:, i]
-        images = self._render(basis).reshape(4, -1)
-        columns = 2.0 * (images[:3] - images[3]).T                                 # (pixels, 3)
-        residual = self.likelihood.observed.reshape(-1) - images[3]
-        sigma2 = self.config.sigma ** 2
-        lam = columns.T @ columns / sigma2 + 1e-9 * jnp.eye(3)
-        eta = columns.T @ residual / sigma2
+        colour = contract_params(self.prior, position)["colour"]
+        # per channel the image is w . (k_a A, k_d D, k_s S) + F with w = (c, c, 1)
+        w = jnp.stack([colour, colour, jnp.ones(3)], axis=-1)                      # (3 channels, 3)
+        lam = jnp.einsum("ci,cij,cj->ij", w, gram[:, :3, :3], w) + 1e-9 * jnp.eye(3)
+        eta = jnp.einsum("ci,ci->i", w, gram[:, :3, 3])
         precision = jax.vmap(jnp.diag)(1.0 / var) + lam                             # (C, 3, 3)
         h = mu / var + eta
         chol = jnp.linalg.cholesky(precision)
@@ -202,23 +244,15 @@ class PosteriorModel:
         proposal = mean[combo] + jax.scipy.linalg.solve_triangular(chol[combo].T, noise, lower=False)
         current = loc + std * position[dims]
         new_position = position.at[dims].set((proposal - loc) / std)
-        return self._independence_mh(k_accept, state, new_position, log_q(current) - log_q(proposal))
+        return self._independence_mh(k_accept, state, new_position, bases, log_q(current) - log_q(proposal))
 
-    def _independence_mh(self, key, state, new_position, log_q_ratio):
-        """Accept or reject an independence proposal with the exact log joint; (state, accepted)."""
+    def _independence_mh(self, key, state, new_position, bases, log_q_ratio):
+        """Accept or reject an independence proposal with the exact log joint (image from the bases)."""
         import jax
         import jax.numpy as jnp
 
-        new_logdensity = self.logdensity(new_position)
+        image = self._image_from_bases(bases, new_position)
+        new_logdensity = self.prior.log_prob(new_position) + self.likelihood(image[None])[0]
         accept = jnp.log(jax.random.uniform(key)) < new_logdensity - state.logdensity + log_q_ratio
         return (type(state)(jnp.where(accept, new_position, state.position),
                             jnp.where(accept, new_logdensity, state.logdensity)), accept)
-
-    def material_move(self, key, state):
-        """The colour move, then the Phong-weights move (Metropolis-within-Gibbs over the materials)."""
-        import jax
-
-        k_colour, k_weights = jax.random.split(key)
-        state, colour_ok = self.colour_move(k_colour, state)
-        state, weights_ok = self.weights_move(k_weights, state)
-        return state, colour_ok & weights_ok

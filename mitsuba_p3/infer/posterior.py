@@ -171,7 +171,7 @@ def infer_image(fitted: FittedModel, observed: np.ndarray, likelihood: Likelihoo
     seconds = time.perf_counter() - start
     info = {"model": str(fitted.root), "likelihood": likelihood.kind, "sigma": likelihood.sigma,
             "renderer": renderer, "sampler": run.config, "tuning": run.tuning, "seconds": seconds,
-            "acceptance": float(run.accepted.mean()), **(attrs or {})}
+            "acceptance": float(run.accepted.mean()), **run.statistics, **(attrs or {})}
     return to_inference_data(model, run, observed, info)
 
 

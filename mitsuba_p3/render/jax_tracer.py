@@ -167,11 +167,9 @@ def bilinear(texture, u, v):
     return top * (1 - fy) + bottom * fy
 
 
-def phong(albedo, diffuse, specular, shininess, cos_light, cos_reflect):
-    """k_d c max(0, n.l) + k_s max(0, r.v)^alpha, zero where n.l <= 0."""
-    highlight = jnp.where(cos_reflect > 0, jnp.exp(shininess * jnp.log(jnp.maximum(cos_reflect, _TINY))), 0.0)
-    value = diffuse * albedo * cos_light + specular * highlight
-    return jnp.where(cos_light > 0, value, 0.0)
+def highlight(shininess, cos_reflect):
+    """The Phong highlight max(0, r.v)^alpha (safe for alpha near 0 and r.v near 0)."""
+    return jnp.where(cos_reflect > 0, jnp.exp(shininess * jnp.log(jnp.maximum(cos_reflect, _TINY))), 0.0)
 
 
 def _geometry(intersect, p, origin, directions, floor_half_size: float):
@@ -203,8 +201,12 @@ def _materialised(fn, predicate):
 
 
 def trace(shape: str, p: Mapping[str, jnp.ndarray], origin, directions, floor_half_size: float,
-          shadows: bool, ids: bool = False):
-    """Render one parameter set of a shape class from rays (3, N): (N, 3) colours or (N,) surface ids."""
+          shadows: bool, ids: bool = False, bases: bool = False):
+    """Render one parameter set of a shape class from rays (3, N).
+
+    Returns (N, 3) colours, or (N,) surface ids, or with ``bases`` the (N, 4, 3)
+    material bases of :meth:`JaxRenderer.render_bases`.
+    """
     intersect = INTERSECT[shape]
     origin = origin[:, None]
     pose = jax.lax.stop_gradient({k: p[k] for k in ("shift", "theta", "scale")})
@@ -225,21 +227,35 @@ def trace(shape: str, p: Mapping[str, jnp.ndarray], origin, directions, floor_ha
     specular = pick(p["specular"], p["floor_specular"])
     shininess = pick(p["shininess"], p["floor_shininess"])
 
-    result = ambient * albedo * p["ambient_light"][:, None]
+    # The Phong sum, per light: I_l [n.l > 0] (k_d c n.l + k_s max(0, r.v)^alpha). Its two
+    # light sums D = sum I_l [n.l > 0] n.l and S = sum I_l [n.l > 0] max(0, r.v)^alpha
+    # make the image affine in the materials: k_a c A + k_d c D + k_s S.
+    lit_diffuse = jnp.zeros_like(point)
+    lit_specular = jnp.zeros_like(point)
     for k in range(p["light_position"].shape[0]):
         to_light = p["light_position"][k][:, None] - point
         distance = jnp.sqrt(_dot(to_light, to_light))
         l = to_light / distance
         cos_light = _dot(normal, l)
         reflected = 2 * cos_light * normal - l
-        value = phong(albedo, diffuse, specular, shininess, cos_light, _dot(reflected, view))
+        lit = cos_light > 0
         if shadows:
             start = point + normal * SHADOW_OFFSET
             t_block, _ = jax.lax.stop_gradient(_object_hit(intersect, pose, start, l))
-            value = jnp.where(t_block < jax.lax.stop_gradient(distance), 0.0, value)
-        result = result + p["light_intensity"][k][:, None] * value
+            lit = lit & (t_block >= jax.lax.stop_gradient(distance))
+        intensity = p["light_intensity"][k][:, None]
+        lit_diffuse = lit_diffuse + jnp.where(lit, intensity * cos_light, 0.0)
+        lit_specular = lit_specular + jnp.where(lit, intensity * highlight(shininess, _dot(reflected, view)), 0.0)
+    ambient_light = p["ambient_light"][:, None]
+    result = ambient * albedo * ambient_light + diffuse * albedo * lit_diffuse + specular * lit_specular
     valid = hit_obj | hit_floor
-    return jnp.where(valid, jnp.clip(result, 0.0, 1.0), 0.0).T
+    image = jnp.where(valid, jnp.clip(result, 0.0, 1.0), 0.0)
+    if not bases:
+        return image.T
+    on_object = lambda v: jnp.where(hit_obj, v, 0.0)  # noqa: E731
+    ambient_basis = on_object(jnp.broadcast_to(ambient_light, point.shape))
+    return jnp.stack([ambient_basis, on_object(lit_diffuse), on_object(lit_specular),
+                      jnp.where(hit_obj, 0.0, image)]).transpose(2, 0, 1)
 
 
 class JaxRenderer(Renderer):
@@ -262,26 +278,43 @@ class JaxRenderer(Renderer):
             shape: jax.jit(partial(self._trace_shape, shape)) for shape in SHAPES
         }
         self._batched = jax.jit(self._trace_batch)
+        self._single_bases = {shape: jax.jit(partial(self._trace_shape, shape, bases=True)) for shape in SHAPES}
+        self._batched_bases = jax.jit(partial(self._trace_batch, bases=True))
         self._ids = {shape: jax.jit(partial(self._trace_shape, shape, ids=True)) for shape in SHAPES}
         self._vjps: dict = {}  # jitted pullbacks, per render function
 
     # ------------------------------------------------------------------ pure JAX
-    def _trace_shape(self, shape: str, p, ids: bool = False):
-        out = trace(shape, p, self._origin, self._directions, self.floor_half_size, self.shadows, ids)
-        return out.reshape(self.height, self.width, *(() if ids else (3,)))
+    def _trace_shape(self, shape: str, p, ids: bool = False, bases: bool = False):
+        out = trace(shape, p, self._origin, self._directions, self.floor_half_size, self.shadows, ids, bases)
+        return out.reshape(self.height, self.width, *(() if ids else (4, 3) if bases else (3,)))
 
-    def _trace_batch(self, p):
+    def _trace_batch(self, p, bases: bool = False):
         objects = {k: p[k] for k in OBJECT_SHAPES}
         shared = {k: v for k, v in p.items() if k not in objects}
-        branches = [partial(lambda shape, obj: self._trace_shape(shape, {**shared, **obj}), shape)
+        branches = [partial(lambda shape, obj: self._trace_shape(shape, {**shared, **obj}, bases=bases), shape)
                     for shape in SHAPES]
         return jax.lax.map(lambda obj: jax.lax.switch(obj["kappa"], branches, obj), objects)
 
-    def render_jax(self, p: Mapping[str, jnp.ndarray]) -> jnp.ndarray:
-        """Pure JAX render of a full parameter mapping (batched or not); kappa may be traced."""
+    def render_jax(self, p: Mapping[str, jnp.ndarray], bases: bool = False) -> jnp.ndarray:
+        """Pure JAX render of a full parameter mapping (batched or not); kappa may be traced.
+
+        With ``bases``, the material bases of :meth:`render_bases` instead of the image."""
         if p["shift"].ndim == 2:
-            return self._trace_batch(p)
-        return self._trace_batch({k: (v[None] if k in OBJECT_SHAPES else v) for k, v in p.items()})[0]
+            return self._trace_batch(p, bases)
+        return self._trace_batch({k: (v[None] if k in OBJECT_SHAPES else v) for k, v in p.items()}, bases)[0]
+
+    def render_bases(self, params: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
+        """The image's material bases, (H, W, 4, 3) or (B, H, W, 4, 3): A, D, S and F.
+
+        On the object's pixels the image is ``clip(c (k_a A + k_d D) + k_s S)``: A is the
+        ambient light, D and S the light sums of the Phong diffuse and specular terms.
+        F is the image elsewhere (and 0 on the object). The object's materials enter
+        only through these formulas, so one render serves any colour and weights at
+        this pose, class and shininess (:meth:`PosteriorModel.material_move`)."""
+        merged = self.merged(params)
+        if not is_batched(merged):
+            return np.asarray(self._single_bases[SHAPES[int(merged["kappa"])]](merged))
+        return np.asarray(self._batched_bases(merged))
 
     # ------------------------------------------------------------------ contract
 

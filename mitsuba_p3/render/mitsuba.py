@@ -8,7 +8,7 @@ A change of pose, size or class is therefore only per-ray arithmetic: no BVH
 rebuild (4 ms for a 5K-triangle mesh) and no kernel recompilation, and a batch
 of B parameter sets is a single launch of B*H*W rays. The floor z = 0 is
 intersected analytically and shaded by a ``phong`` BSDF whose pattern is a
-Mitsuba bitmap texture. Shading is :func:`~mitsuba_p3.render.phong.phong_lobes`.
+Mitsuba bitmap texture. Shading sums :func:`~mitsuba_p3.render.phong.phong_terms` over the lights.
 
 Gradients flow (Dr.Jit AD) to colours, materials, lights, ambient light and the
 floor; the geometry is detached, since visibility edges make plain-AD pose
@@ -29,7 +29,7 @@ from .contract import FLOAT_KEYS, Renderer, is_batched
 mi = mitsuba()
 import drjit as dr  # noqa: E402  (after the backend has chosen libLLVM)
 
-from .phong import SHADOW_OFFSET, phong_lobes, pixel_centre_rays  # noqa: E402
+from .phong import SHADOW_OFFSET, phong_terms, pixel_centre_rays  # noqa: E402
 
 SLOT_SPACING = 8.0  # canonical units between the shape slots (shapes span 2 units)
 _ENTRY_BACKOFF = 1e-3  # start object-space rays slightly before the box, in canonical units
@@ -227,6 +227,23 @@ class MitsubaRenderer(Renderer):
         out = image.numpy()
         return out if is_batched(merged) else out[0]
 
+    def render_bases(self, params: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
+        """The image's material bases, (H, W, 4, 3) or (B, H, W, 4, 3): A, D, S and F.
+
+        On the object's pixels the image is ``clip(c (k_a A + k_d D) + k_s S)``: A is the
+        ambient light, D and S the light sums of the Phong diffuse and specular terms.
+        F is the image elsewhere (and 0 on the object). One render serves any colour and
+        weights at this pose, class and shininess (:meth:`PosteriorModel.material_move`)."""
+        merged = self.merged(params)
+        p = self._to_drjit_cached(merged)
+        dr.detail.new_scope(dr.JitBackend.LLVM)  # see render_drjit
+        self._set_pattern(p)
+        parts = self._shade(p, bases=True)
+        flat = [part[channel] for part in parts for channel in range(3)]
+        dr.eval(*flat)
+        out = np.stack([v.numpy() for v in flat], axis=-1).reshape(p.batch, self.height, self.width, 4, 3)
+        return out if is_batched(merged) else out[0]
+
     def vjp(self, params: Mapping[str, np.ndarray] | None, cotangent: np.ndarray) -> dict[str, np.ndarray]:
         """Gradients of ``sum(render(params) * cotangent)`` for every float parameter.
 
@@ -341,7 +358,8 @@ class MitsubaRenderer(Renderer):
         out = mi.UInt32(ids).numpy().astype(np.int32).reshape(p.batch, self.height, self.width)
         return out if is_batched(merged) else out[0]
 
-    def _shade(self, p: DrParams) -> mi.Color3f:
+    def _shade(self, p: DrParams, bases: bool = False):
+        """The image's colours per ray or, with ``bases``, its material bases (A, D, S, F)."""
         rays = p.batch * self.height * self.width
         differentiating = any(dr.grad_enabled(v) for v in p.differentiable().values())
         batch_index, direction = self._rays(p, differentiating)
@@ -371,7 +389,10 @@ class MitsubaRenderer(Renderer):
         shininess = dr.select(hit_object, per_ray(mi.Float, p.shininess, batch_index),
                               per_ray(mi.Float, p.floor_shininess))
 
-        result = ambient * albedo * per_ray(mi.Color3f, p.ambient_light)
+        # The Phong sum as two light sums, D = sum I_l [n.l > 0] n.l and
+        # S = sum I_l [n.l > 0] max(0, r.v)^alpha: the image is k_a c A + k_d c D + k_s S.
+        ambient_light = per_ray(mi.Color3f, p.ambient_light)
+        lit_diffuse, lit_specular = mi.Color3f(0.0), mi.Color3f(0.0)
         for k in range(dr.width(p.light_position)):
             light = dr.full(mi.UInt32, k, rays) if differentiating else mi.UInt32(k)
             position = dr.gather(mi.Point3f, p.light_position, light)
@@ -381,12 +402,19 @@ class MitsubaRenderer(Renderer):
             direction_l = to_light / distance
             cos_light = dr.dot(normal, direction_l)
             reflected = 2.0 * cos_light * normal - direction_l
-            value = phong_lobes(albedo, diffuse, specular, shininess, cos_light, dr.dot(reflected, view))
+            diffuse_term, specular_term = phong_terms(shininess, cos_light, dr.dot(reflected, view))
             if self.shadows:
                 with dr.suspend_grad():
                     start = point + normal * SHADOW_OFFSET
                     occluded = self._trace_object(frame, start, dr.detach(direction_l), dr.detach(distance),
                                                   test_only=True, active=valid & (cos_light > 0))
-                value = dr.select(occluded, 0.0, value)
-            result += intensity * value
-        return dr.select(valid, dr.clip(result, 0.0, 1.0), 0.0)
+                diffuse_term = dr.select(occluded, 0.0, diffuse_term)
+                specular_term = dr.select(occluded, 0.0, specular_term)
+            lit_diffuse += intensity * diffuse_term
+            lit_specular += intensity * specular_term
+        result = albedo * (ambient * ambient_light + diffuse * lit_diffuse) + specular * lit_specular
+        image = dr.select(valid, dr.clip(result, 0.0, 1.0), 0.0)
+        if not bases:
+            return image
+        return (dr.select(hit_object, ambient_light, 0.0), dr.select(hit_object, lit_diffuse, 0.0),
+                dr.select(hit_object, lit_specular, 0.0), dr.select(hit_object, 0.0, image))

@@ -7,7 +7,8 @@ The one Phong model of the project (shared/ARCHITECTURE.md) is
 with c the albedo, A the ambient light, I_l a point light's RGB intensity (no
 distance fall-off) and V_l its visibility (1 with shadows off). It predicts
 display pixel values directly and is clipped to [0, 1]. :func:`phong_lobes` is
-the per-light term; the BSDF's ``eval`` and the renderers all call it.
+the per-light term (the BSDF's ``eval``); the renderers sum :func:`phong_terms`
+over the lights, so that the image is affine in the materials.
 """
 from __future__ import annotations
 
@@ -20,18 +21,23 @@ SHADOW_OFFSET = 1e-4
 _TINY = 1e-30
 
 
-def phong_lobes(albedo, diffuse, specular, shininess, cos_light, cos_reflect):
-    """Diffuse plus specular Phong reflection for one light of unit intensity.
+def phong_terms(shininess, cos_light, cos_reflect):
+    """The per-light Phong terms before the materials: ([n.l > 0] n.l, [n.l > 0] max(0, r.v)^alpha).
 
     ``cos_light`` is n.l and ``cos_reflect`` is r.v (r: the light direction mirrored
-    about n, v: towards the viewer). Returns k_d c max(0, n.l) + k_s max(0, r.v)^alpha,
-    both zero where the light is behind the surface (n.l <= 0).
+    about n, v: towards the viewer); both are zero where the light is behind the surface.
     """
     lit = cos_light > 0
     cos_r = dr.maximum(cos_reflect, _TINY)
     highlight = dr.select(cos_reflect > 0, dr.exp(shininess * dr.log(cos_r)), 0.0)
-    value = diffuse * albedo * cos_light + specular * highlight
-    return dr.select(lit, value, 0.0)
+    return dr.select(lit, cos_light, 0.0), dr.select(lit, highlight, 0.0)
+
+
+def phong_lobes(albedo, diffuse, specular, shininess, cos_light, cos_reflect):
+    """Diffuse plus specular Phong reflection for one light of unit intensity:
+    k_d c max(0, n.l) + k_s max(0, r.v)^alpha, zero where n.l <= 0 (see :func:`phong_terms`)."""
+    diffuse_term, specular_term = phong_terms(shininess, cos_light, cos_reflect)
+    return diffuse * albedo * diffuse_term + specular * specular_term
 
 
 def _as_colour(value):

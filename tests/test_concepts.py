@@ -1,0 +1,95 @@
+"""Protoprograms: KDEs, merge, the KL distance and its Monte Carlo estimator, classification; ADI; ECE."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mitsuba_p3.concepts import CONTINUOUS, DistanceConfig, ProtoProgram, classify, distance, kl_terms
+from mitsuba_p3.evaluate import expected_calibration_error, interval95
+
+
+def _program(rng, shift: float = 0.0, spread: float = 1.0, n: int = 1500, shape: int = 1) -> ProtoProgram:
+    samples = {name: shift + spread * rng.normal(size=(n, 3 if name in ("scale", "colour") else 1)) * 0.1
+               for name in CONTINUOUS}
+    samples["class"] = np.full(n, shape)
+    return ProtoProgram(samples)
+
+
+def test_kl_estimate_matches_gaussians_and_its_variance_falls_with_samples():
+    """KL of two 1-D Gaussians N(0, 1) || N(1, 1) is 0.5; the KDEs (Scott) widen both a little.
+    The estimator's spread over seeds is measured and must fall like 1 / sqrt(n)."""
+    rng = np.random.default_rng(0)
+    p = ProtoProgram({"x": rng.normal(0, 1, (4000, 1)), "class": np.zeros(4000, int)})
+    q = ProtoProgram({"x": rng.normal(1, 1, (4000, 1)), "class": np.zeros(4000, int)})
+    p.samples, q.samples = dict(p.samples), dict(q.samples)
+    estimates = {}
+    for n in (100, 1600):
+        values = []
+        for seed in range(20):
+            x = p.kde("x").resample(n, seed=np.random.default_rng(seed))
+            values.append(np.mean(p.kde("x").logpdf(x) - q.kde("x").logpdf(x)))
+        estimates[n] = np.array(values)
+    assert estimates[1600].mean() == pytest.approx(0.5 * 1 / (1 + 4000 ** -0.4), abs=0.05)
+    ratio = estimates[100].std() / estimates[1600].std()
+    assert 2.0 < ratio < 8.0, ratio   # sqrt(16) = 4
+
+
+def test_distance_is_zero_for_itself_and_grows_with_difference():
+    rng = np.random.default_rng(1)
+    base = _program(rng)
+    same = distance(base, base)
+    near, far = distance(base, _program(rng, shift=0.02)), distance(base, _program(rng, shift=0.2))
+    assert abs(same) < 1e-9 and 0 < near < far
+    terms = kl_terms(base, _program(rng, shape=2))
+    assert terms["class"] > 1.0 and np.isfinite(terms["class"])   # smoothing keeps it finite
+
+
+def test_distance_is_reproducible_with_its_seed():
+    rng = np.random.default_rng(2)
+    a, b = _program(rng), _program(rng, shift=0.05)
+    assert distance(a, b, DistanceConfig(seed=3)) == distance(a, b, DistanceConfig(seed=3))
+
+
+def test_merge_sample_log_prob_and_classify():
+    rng = np.random.default_rng(3)
+    shots = [_program(rng, shift=0.5, n=400) for _ in range(3)]
+    merged = ProtoProgram.merge(shots)
+    assert len(merged.samples["colour"]) == 1200
+    draws = merged.sample(50, seed=0)
+    assert draws["colour"].shape == (50, 3) and set(draws["class"]) <= {0, 1, 2}
+    assert np.all(np.isfinite(merged.log_prob(draws)))
+    classes = [merged, ProtoProgram.merge([_program(rng, shift=-0.5, n=400)])]
+    probabilities = classify(classes, _program(rng, shift=0.5, n=400))
+    assert probabilities.sum() == pytest.approx(1.0) and probabilities[0] > 0.99
+
+
+def test_expected_calibration_error():
+    rng = np.random.default_rng(4)
+    confidence = rng.uniform(0.5, 1.0, 20000)
+    calibrated = rng.uniform(size=confidence.size) < confidence
+    assert expected_calibration_error(confidence, calibrated)[0] < 0.02
+    overconfident = rng.uniform(size=confidence.size) < confidence - 0.3
+    assert expected_calibration_error(confidence, overconfident)[0] == pytest.approx(0.3, abs=0.03)
+    mean, half = interval95([0.0, 1.0] * 50)
+    assert mean == 0.5 and half == pytest.approx(1.96 * 0.5025 / 10, rel=0.01)
+
+
+@pytest.fixture
+def cube_shot():
+    from types import SimpleNamespace
+
+    from mitsuba_p3.benchmarks.protocol import ClassLabel, Pose
+
+    pose = Pose(0.02, -0.03, 0.035, 0.3, (0.035, 0.035, 0.035))
+    return SimpleNamespace(cls=ClassLabel("cube", "red", "rubber", "large"), position=np.array([0.02, -0.03, 0.035]),
+                           yaw=0.3, object_to_world=pose.object_to_world(), mesh=None)
+
+
+def test_adi_is_zero_at_the_truth_blind_to_symmetry_and_grows_with_error(cube_shot):
+    from mitsuba_p3.pose import adi
+
+    assert adi(cube_shot, np.array([0.02, -0.03]), 0.3) < 1e-9
+    assert adi(cube_shot, np.array([0.02, -0.03]), 0.3 + np.pi / 2) < 0.002   # a cube's symmetry
+    assert adi(cube_shot, np.array([0.02, -0.03]), 0.3 + np.pi / 4) > 0.003
+    errors = [adi(cube_shot, np.array([0.02 + d, -0.03]), 0.3) for d in (0.01, 0.05, 0.3)]
+    assert 0.003 < errors[0] < errors[1] < errors[2] and errors[2] > 0.25   # far away: about the shift

@@ -1,0 +1,94 @@
+"""End-to-end evaluation: cached posteriors survive kill -9, episodes, tables, Dask."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import asdict
+
+import numpy as np
+import pytest
+
+from mitsuba_p3.benchmarks.dataset import load_dataset
+from mitsuba_p3.evaluate import EvaluationConfig, EvaluationError, compute_posteriors, evaluate, posterior_path
+from mitsuba_p3.fit.model import fit_model
+from mitsuba_p3.fit.scene_opt import SceneOptConfig
+from mitsuba_p3.infer.mcmc import SamplerConfig
+
+RES = (30, 40)
+TINY = SamplerConfig(chains=4, steps=30, burn_in=10, tune_rounds=2, tune_steps=20, block=10, init_candidates=32)
+SAMPLER_FLAGS = ["--chains", "4", "--steps", "30", "--burn-in", "10", "--tune-rounds", "2", "--tune-steps", "20"]
+
+
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory):
+    from mitsuba_p3.benchmarks.generate import generate
+
+    root = tmp_path_factory.mktemp("evaluate")
+    generate("fsclvr", root / "data", seed=5, size="small", resolution=RES, spp=8)
+    fit_model(root / "data", root / "model", scene_config=SceneOptConfig(resolution=RES, pattern_size=16, epochs=1,
+                                                                         material_passes=1, global_passes=2))
+    return root
+
+
+def test_evaluate_resumes_after_kill_and_writes_tables(bench, tmp_path):
+    run = tmp_path / "run"
+    command = [sys.executable, "-m", "mitsuba_p3.cli", "evaluate", str(bench / "data"), "--model",
+               str(bench / "model"), "--out", str(run), "--likelihoods", "p3", "--episodes", "20", *SAMPLER_FLAGS]
+    first = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    folder = run / "posteriors" / "p3"
+    deadline = time.time() + 600
+    while time.time() < deadline and len(list(folder.glob("*.npz"))) < 2:
+        time.sleep(0.5)
+    os.killpg(first.pid, signal.SIGKILL)
+    first.wait()
+    finished = {p: p.stat().st_mtime_ns for p in folder.glob("*.npz")}
+    assert len(finished) >= 2
+    tests = load_dataset(bench / "data").split("test")
+    assert len(finished) < len(tests), "killed too late to test resuming"
+
+    result = subprocess.run(command, capture_output=True, text=True, timeout=1200)
+    assert result.returncode == 0, result.stderr
+    assert {p: p.stat().st_mtime_ns for p in finished} == finished      # not recomputed
+    assert len(list(folder.glob("*.npz"))) == len(tests)
+    assert not list(folder.glob("*.tmp*"))
+    results = json.loads((run / "results.json").read_text())["results"]["p3"]
+    accuracy = results["accuracy"]["5-way 1-shot"]
+    assert 0.0 <= accuracy["mean"] <= 1.0 and accuracy["episodes"] == 20 and 0 <= accuracy["ece"] <= 1
+    assert "5-way 5-shot" not in results["accuracy"]      # 3 shots per class cannot make it
+    assert 0 < results["adi"]["mean"] < 0.2 and len(results["adi_per_class"]) == 5
+    for name in ("accuracy.md", "accuracy.csv", "adi.md", "adi.csv", "reliability.png", "predictions.csv"):
+        assert (run / name).is_file(), name
+    assert "P3" in (run / "accuracy.md").read_text()
+
+    other = subprocess.run(command[:-len(SAMPLER_FLAGS)] + ["--chains", "6"], capture_output=True, text=True,
+                           timeout=300)
+    assert other.returncode == 2 and "other settings" in other.stderr
+
+
+def test_posteriors_on_a_dask_cluster(bench, tmp_path):
+    from dask.distributed import LocalCluster
+
+    dataset = load_dataset(bench / "data")
+    shots = [s.index for s in dataset.split("test")[:2]]
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        config = EvaluationConfig(likelihoods=("p3",), sampler=TINY, dask=cluster.scheduler_address)
+        compute_posteriors(dataset, bench / "model", tmp_path, config, shots=shots)
+    for index in shots:
+        with np.load(posterior_path(tmp_path, "p3", index)) as f:
+            assert f["sample_colour"].shape[1] == 3 and f["sample_class"].ndim == 1
+
+
+def test_run_folder_refuses_other_settings(bench, tmp_path):
+    config = EvaluationConfig(likelihoods=("p3",), sampler=TINY, episodes=2)
+    from mitsuba_p3.evaluate import _check_run
+
+    dataset = load_dataset(bench / "data")
+    _check_run(tmp_path, dataset, bench / "model", config)
+    _check_run(tmp_path, dataset, bench / "model", config)                   # same settings: fine
+    changed = EvaluationConfig(likelihoods=("p3",), sampler=SamplerConfig(**{**asdict(TINY), "steps": 31}))
+    with pytest.raises(EvaluationError, match="other settings"):
+        evaluate(bench / "data", bench / "model", tmp_path, changed)
