@@ -325,7 +325,7 @@ def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
     for round_index in range(config.tune_rounds):
         states, (positions, logdensities, moves) = advance(states, "tuning", blocks_per_round)
         statistics = move_statistics(moves)
-        # no culling after the first round: its chains are still converging into their modes
+        # no culling in the first round: its chains are still converging into their modes
         states, culled = _cull(states, logdensities, config.cull_margin, rng) if round_index else (states, 0)
         history.append(positions[len(positions) // 4:].reshape(-1, dimension))
         factor *= _acceptance_correction(statistics["walk_acceptance"], config.target_acceptance)

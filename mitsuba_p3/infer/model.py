@@ -142,7 +142,6 @@ class PosteriorModel:
         Returns (new state, both accepted).
         """
         import jax
-
         import jax.numpy as jnp
 
         k_colour, k_weights = jax.random.split(key)
