@@ -250,6 +250,11 @@ def write_tables(run_dir: Path, results: dict) -> dict:
             acc = result["accuracy"].get(name)
             cells.append(f"{100 * acc['mean']:.1f} ± {100 * acc['half_width']:.1f}" if acc else "-")
         rows.append([likelihood.upper()] + cells)
+    baselines = load_baselines(run_dir)
+    for baseline in baselines:
+        rows.append([baseline["model"]] + [
+            f"{100 * a['mean']:.1f} ± {100 * a['half_width']:.1f}" if (a := baseline["accuracy"].get(name)) else "-"
+            for name in settings])
     (run_dir / "accuracy.md").write_text(_markdown(header, rows))
     with open(run_dir / "accuracy.csv", "w", newline="") as f:
         writer = csv.writer(f)
@@ -257,6 +262,9 @@ def write_tables(run_dir: Path, results: dict) -> dict:
         for likelihood, result in results.items():
             for name, acc in result["accuracy"].items():
                 writer.writerow([likelihood, name, acc["mean"], acc["half_width"], acc["episodes"], acc["ece"]])
+        for baseline in baselines:
+            for name, acc in baseline["accuracy"].items():
+                writer.writerow([baseline["model"], name, acc["mean"], acc["half_width"], acc["episodes"], ""])
 
     classes = sorted({c for result in results.values() for c in result["adi_per_class"]})
     adi_rows = [[c] + [f"{result['adi_per_class'][c]['mean']:.4f} / {result['adi_per_class'][c]['median']:.4f}"
@@ -275,6 +283,11 @@ def write_tables(run_dir: Path, results: dict) -> dict:
     _reliability_plot(run_dir / "reliability.png", results)
     return {"accuracy": str(run_dir / "accuracy.md"), "adi": str(run_dir / "adi.md"),
             "reliability": str(run_dir / "reliability.png")}
+
+
+def load_baselines(run_dir: Path) -> list[dict]:
+    """Baseline results evaluated on this run's episodes (``mitsuba-p3 baseline evaluate --out RUN``)."""
+    return [json.loads(p.read_text()) for p in sorted(Path(run_dir).glob("baselines/*.json"))]
 
 
 def _reliability_plot(path: Path, results: dict) -> None:

@@ -11,6 +11,9 @@ per-image posteriors already on disk are reused. Writes, in ``--out``:
 - ``adi.md`` / ``adi.csv``: mean ADI (metres) per benchmark, P3 / NP3, beside the paper's;
 - one evaluation run folder per benchmark (``runs/V``) with its own tables and figures.
 
+Baselines evaluated into ``runs/V`` beforehand (``mitsuba-p3 baseline evaluate
+TRAINED data/V --out results/runs/V``) appear in the accuracy table too.
+
     python scripts/reproduce_tables.py [--data data] [--out results] [--episodes 100] [--jobs 1]
         [--chains 8 --steps 200 ...] [--benchmarks fsclvr,dark,room,ood]
 
@@ -77,6 +80,15 @@ def write_tables(out: Path, results: dict) -> None:
     rows = []
     for model in ("P3", "NP3"):
         rows.append([model, "this project"] + [cells(results[c][model.lower()]) if c in results else "-"
+                                               for c in COLUMNS])
+    from mitsuba_p3.evaluate import load_baselines
+
+    found = {}
+    for c in results:
+        for baseline in load_baselines(out / "runs" / c):
+            found.setdefault(baseline["model"], {})[c] = baseline
+    for model, per_benchmark in sorted(found.items()):
+        rows.append([model, "this project"] + [cells(per_benchmark[c]) if c in per_benchmark else "-"
                                                for c in COLUMNS])
     for model, numbers in PAPER_ACCURACY.items():
         rows.append([model, "paper"] + [numbers[c] for c in COLUMNS])

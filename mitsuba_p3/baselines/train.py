@@ -1,0 +1,267 @@
+"""Meta-training and evaluation of the baselines on a benchmark (resumable, with checkpoints).
+
+``train_baseline`` meta-trains on episodes drawn from the data set's *train*
+classes: Adam 1e-3 (optax), ``meta_batch`` tasks per iteration, each task N-way
+K-shot with the rest of every class's shots as queries. The N-way of each task
+alternates between ``train_ways`` (5 and 10 by default, the two test settings;
+ways above the number of training classes are skipped).
+Every ``checkpoint_every`` iterations the parameters, the optimiser state, the
+RNG and the learning curve go to ``DIR/checkpoint.pkl`` (atomic write); a rerun
+resumes from it, and refuses a folder trained with other settings.
+
+``evaluate_baseline`` scores the *same* test episodes as P3/NP3
+(:func:`mitsuba_p3.benchmarks.episodes.sample_episodes`, seed 0, one query per
+class) and writes ``RUN/baselines/NAME.json`` for the evaluation tables.
+
+Images are the data set's, squashed to ``resolution`` x ``resolution`` (the
+benchmarks are 4:3; cropping would cut off objects near the sides).
+"""
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import tempfile
+from dataclasses import asdict, dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..errors import MitsubaP3Error
+from .methods import MAML, METHODS
+
+CHECKPOINT_FORMAT = "mitsuba-p3-baseline"
+# Sized for the 2-core machine (the paper used 60K): see the README for the measured times.
+DEFAULT_ITERATIONS = {"protonets": 2000, "maml": 1000}
+
+
+class BaselineError(MitsubaP3Error):
+    """Bad baseline settings or an unusable training folder."""
+
+
+@dataclass
+class TrainConfig:
+    method: str = "protonets"
+    resolution: int = 56
+    iterations: int = 2000
+    k_shot: int = 1
+    train_ways: tuple = (5, 10)
+    meta_batch: int = 2
+    learning_rate: float = 1e-3
+    second_order: bool = False      # MAML only
+    checkpoint_every: int = 100
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise BaselineError(f"unknown baseline {self.method!r}; choose protonets or maml")
+        if self.resolution < 16:
+            raise BaselineError("the Conv-4 backbone needs images of at least 16x16")
+        self.train_ways = tuple(self.train_ways)
+
+    def model(self):
+        if self.method == "maml":
+            return MAML(second_order=self.second_order)
+        return METHODS[self.method]()
+
+    @property
+    def label(self) -> str:
+        names = {"protonets": "ProtoNets", "maml": "MAML"}
+        return f"{names[self.method]} {self.resolution}"
+
+
+def class_images(dataset, split: str, resolution: int) -> dict[str, np.ndarray]:
+    """Each class's shots as (shots, R, R, 3) float32 in [0, 1]."""
+    from PIL import Image
+
+    out = {}
+    for name in dataset.classes(split):
+        shots = []
+        for shot in dataset.shots_of(name):
+            image = Image.open(shot.file).convert("RGB").resize((resolution, resolution), Image.BOX)
+            shots.append(np.asarray(image, np.float32) / 255.0)
+        out[name] = np.stack(shots)
+    return out
+
+
+def sample_task(rng: np.random.Generator, images: dict[str, np.ndarray], n_way: int, k_shot: int):
+    """An N-way K-shot task from ``images``; every remaining shot of a class is a query."""
+    names = sorted(images)
+    if n_way > len(names):
+        raise BaselineError(f"{n_way}-way tasks need {n_way} classes; the split has {len(names)}")
+    fewest = min(len(v) for v in images.values())
+    if k_shot >= fewest:
+        raise BaselineError(f"{k_shot}-shot tasks need more than {k_shot} shots per class; some class has {fewest}")
+    support, labels, queries, query_labels = [], [], [], []
+    for label, index in enumerate(rng.choice(len(names), n_way, replace=False)):
+        shots = images[names[index]][rng.permutation(len(images[names[index]]))]
+        support.append(shots[:k_shot])
+        queries.append(shots[k_shot:fewest])
+        labels += [label] * k_shot
+        query_labels += [label] * (fewest - k_shot)
+    return (np.concatenate(support), np.array(labels), np.concatenate(queries), np.array(query_labels), n_way)
+
+
+def _atomic_pickle(path: Path, value) -> None:
+    handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    with os.fdopen(handle, "wb") as f:
+        pickle.dump(value, f)
+    os.replace(temporary, path)
+
+
+@dataclass
+class Checkpoint:
+    config: dict
+    iteration: int
+    params: object
+    opt_state: object
+    rng_state: dict
+    curve: list = field(default_factory=list)   # (iteration, loss, accuracy) per iteration
+
+    @classmethod
+    def load(cls, folder: Path) -> "Checkpoint":
+        path = Path(folder) / "checkpoint.pkl"
+        if not path.exists():
+            raise BaselineError(f"{folder} holds no trained baseline (no checkpoint.pkl)")
+        with open(path, "rb") as f:
+            record = pickle.load(f)
+        if record.get("format") != CHECKPOINT_FORMAT:
+            raise BaselineError(f"{path} is not a mitsuba-p3 baseline checkpoint")
+        return cls(**{k: v for k, v in record.items() if k != "format"})
+
+    def save(self, folder: Path) -> None:
+        import jax
+
+        to_numpy = lambda tree: jax.tree_util.tree_map(np.asarray, tree)  # noqa: E731
+        _atomic_pickle(Path(folder) / "checkpoint.pkl",
+                       {"format": CHECKPOINT_FORMAT, **asdict(self) | {"params": to_numpy(self.params),
+                                                                      "opt_state": to_numpy(self.opt_state)}})
+
+
+def train_baseline(dataset_dir: str | Path, out: str | Path, config: TrainConfig,
+                   progress: Callable[[int, int], None] | None = None) -> Checkpoint:
+    """Meta-train (or resume) a baseline on a benchmark's train split; writes the learning curve."""
+    from ..benchmarks.dataset import load_dataset
+
+    images = class_images(load_dataset(dataset_dir), "train", config.resolution)
+    return meta_train(images, out, config, progress)
+
+
+def meta_train(images: dict[str, np.ndarray], out: str | Path, config: TrainConfig,
+               progress: Callable[[int, int], None] | None = None) -> Checkpoint:
+    """Meta-train (or resume) on ``images`` (class -> (shots, R, R, 3)); returns the final checkpoint."""
+    import jax
+    import optax
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    model = config.model()
+    optimiser = optax.adam(config.learning_rate)
+    settings = asdict(config)
+    if (out / "checkpoint.pkl").exists():
+        state = Checkpoint.load(out)
+        changed = [k for k in settings if k != "iterations" and state.config.get(k) != settings[k]]
+        if changed:
+            raise BaselineError(f"{out} holds a baseline trained with other settings ({', '.join(changed)})")
+        state.config = settings
+    else:
+        params = model.init(jax.random.PRNGKey(config.seed), config.resolution)
+        state = Checkpoint(settings, 0, params, optimiser.init(params),
+                           np.random.default_rng(config.seed).bit_generator.state)
+    rng = np.random.default_rng()
+    rng.bit_generator.state = state.rng_state
+
+    @partial(jax.jit, static_argnums=3)
+    def update(params, opt_state, tasks, way):
+        def loss(p):
+            values = [model.task_loss(p, (*task, way)) for task in tasks]
+            return sum(v[0] for v in values) / len(values), sum(v[1] for v in values) / len(values)
+
+        (value, accuracy), grads = jax.value_and_grad(loss, has_aux=True)(params)
+        updates, opt_state = optimiser.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, value, accuracy
+
+    ways = [w for w in config.train_ways if w <= len(images)]
+    if not ways:
+        raise BaselineError(f"the training split has {len(images)} classes: too few for {config.train_ways}-way tasks")
+    params, opt_state = state.params, state.opt_state
+    while state.iteration < config.iterations:
+        way = ways[state.iteration % len(ways)]
+        tasks = tuple(sample_task(rng, images, way, config.k_shot)[:4] for _ in range(config.meta_batch))
+        params, opt_state, value, accuracy = update(params, opt_state, tasks, way)
+        state.iteration += 1
+        state.curve.append((state.iteration, float(value), float(accuracy)))
+        if state.iteration % config.checkpoint_every == 0 or state.iteration == config.iterations:
+            state.params, state.opt_state, state.rng_state = params, opt_state, rng.bit_generator.state
+            state.save(out)
+        if progress:
+            progress(state.iteration, config.iterations)
+    state.params, state.opt_state = params, opt_state
+    learning_curve(out, state.curve, config.label)
+    return state
+
+
+def learning_curve(out: Path, curve: list, label: str) -> Path:
+    """``curve.csv`` and ``learning_curve.png`` (meta-training loss and query accuracy, smoothed)."""
+    import matplotlib.pyplot as plt
+
+    from ..plots import save_figure
+
+    values = np.asarray(curve, np.float64).reshape(-1, 3)
+    np.savetxt(out / "curve.csv", values, delimiter=",", header="iteration,loss,accuracy", comments="")
+    figure, axes = plt.subplots(1, 2, figsize=(8, 3))
+    window = max(1, len(values) // 50)
+    smooth = lambda v: np.convolve(v, np.ones(window) / window, mode="valid")  # noqa: E731
+    for ax, column, name in ((axes[0], 1, "loss"), (axes[1], 2, "query accuracy")):
+        ax.plot(values[:, 0], values[:, column], color="0.8", lw=0.5)
+        ax.plot(values[window - 1:, 0], smooth(values[:, column]), lw=1.5)
+        ax.set_xlabel("iteration")
+        ax.set_title(f"{label}: meta-training {name}")
+    return save_figure(figure, out / "learning_curve.png")
+
+
+def episode_accuracy(predict, params, support, k_shot: int, queries, truth, n_way: int) -> float:
+    """Query accuracy of one episode (support ordered class by class, K shots each)."""
+    probabilities = np.asarray(predict(params, support, np.repeat(np.arange(n_way), k_shot), queries, n_way))
+    return float(np.mean(np.argmax(probabilities, axis=1) == truth))
+
+
+def evaluate_baseline(model_dir: str | Path, dataset_dir: str | Path, run_dir: str | Path, episodes: int = 100,
+                      seed: int = 0, progress: Callable[[int, int], None] | None = None) -> dict:
+    """Accuracy (95% interval over episodes) on the shared test episodes; writes RUN/baselines/NAME.json."""
+    import jax
+
+    from ..benchmarks.dataset import load_dataset
+    from ..benchmarks.episodes import sample_episodes
+    from ..evaluate import SETTINGS, interval95
+
+    state = Checkpoint.load(model_dir)
+    config = TrainConfig(**state.config)
+    model = config.model()
+    dataset = load_dataset(dataset_dir)
+    images = class_images(dataset, "test", config.resolution)
+    by_index = {shot.index: images[shot.class_name][n] for name in dataset.classes("test")
+                for n, shot in enumerate(dataset.shots_of(name))}
+    fewest = min(len(v) for v in images.values())
+    settings = [(n, k) for n, k in SETTINGS if n <= len(images) and k + 1 <= fewest]
+    predict = jax.jit(model.predict, static_argnums=4)
+    accuracy, done = {}, 0
+    for n_way, k_shot in settings:
+        scores = []
+        for episode in sample_episodes(dataset, n_way, k_shot, episodes, seed, queries_per_class=1):
+            support = np.stack([by_index[i] for shots in episode.support for i in shots])
+            queries = np.stack([by_index[i] for i, _ in episode.queries])
+            truth = np.array([t for _, t in episode.queries])
+            scores.append(episode_accuracy(predict, state.params, support, k_shot, queries, truth, n_way))
+            done += 1
+            if progress:
+                progress(done, episodes * len(settings))
+        mean, half = interval95(scores)
+        accuracy[f"{n_way}-way {k_shot}-shot"] = {"mean": mean, "half_width": half, "episodes": episodes}
+    result = {"model": config.label, "trained": state.config, "iterations": state.iteration, "accuracy": accuracy}
+    target = Path(run_dir) / "baselines" / f"{config.method}-{config.resolution}.json"
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.write_text(json.dumps(result, indent=1))
+    return result
