@@ -295,7 +295,8 @@ def _reliability_plot(path: Path, results: dict) -> None:
 
     import matplotlib.pyplot as plt
 
-    settings = [f"{n}-way {k}-shot" for n, k in SETTINGS]
+    settings = [f"{n}-way {k}-shot" for n, k in SETTINGS
+                if any(f"{n}-way {k}-shot" in r["accuracy"] for r in results.values())]
     figure, axes = plt.subplots(1, len(settings), figsize=(3.2 * len(settings), 3.2), squeeze=False)
     for ax, name in zip(axes[0], settings):
         ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--")
@@ -342,6 +343,8 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
             if progress:
                 progress(f"episodes {likelihood}", step, len(settings))
             rows = classify_episodes(dataset, cached, n_way, k_shot, config)
+            if progress:
+                progress(f"episodes {likelihood}", step + 1, len(settings))
             for row in rows:
                 row["model"] = likelihood
             predictions += rows

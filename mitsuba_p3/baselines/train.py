@@ -219,6 +219,7 @@ def learning_curve(out: Path, curve: list, label: str) -> Path:
         ax.plot(values[window - 1:, 0], smooth(values[:, column]), lw=1.5)
         ax.set_xlabel("iteration")
         ax.set_title(f"{label}: meta-training {name}")
+    axes[0].set_yscale("log")
     return save_figure(figure, out / "learning_curve.png")
 
 
