@@ -100,19 +100,30 @@ class ProtoProgram:
         return out
 
 
+def _class_side(class_program: ProtoProgram, config: DistanceConfig) -> dict:
+    """The seeded draws x ~ C_k and log C_k(x) per property: shared by every image compared with C_k."""
+    rng = np.random.default_rng(config.seed)
+    side = {}
+    for name in CONTINUOUS:
+        p = class_program.kde(name)
+        x = p.resample(config.samples, seed=rng)
+        side[name] = (x, p.logpdf(x))
+    side["class"] = class_program.class_probabilities(config.class_smoothing)
+    return side
+
+
+def _kl_from_side(side: dict, image_program: ProtoProgram, config: DistanceConfig) -> dict:
+    terms = {name: float(np.mean(log_p - image_program.kde(name).logpdf(x)))
+             for name, (x, log_p) in ((n, side[n]) for n in CONTINUOUS)}
+    p, q = side["class"], image_program.class_probabilities(config.class_smoothing)
+    terms["class"] = float(np.sum(p * (np.log(p) - np.log(q))))
+    return terms
+
+
 def kl_terms(class_program: ProtoProgram, image_program: ProtoProgram,
              config: DistanceConfig = DistanceConfig()) -> dict:
     """The per-property KL(C_k || C_I) of the module docstring."""
-    rng = np.random.default_rng(config.seed)
-    terms = {}
-    for name in CONTINUOUS:
-        p, q = class_program.kde(name), image_program.kde(name)
-        x = p.resample(config.samples, seed=rng)
-        terms[name] = float(np.mean(p.logpdf(x) - q.logpdf(x)))
-    p = class_program.class_probabilities(config.class_smoothing)
-    q = image_program.class_probabilities(config.class_smoothing)
-    terms["class"] = float(np.sum(p * (np.log(p) - np.log(q))))
-    return terms
+    return _kl_from_side(_class_side(class_program, config), image_program, config)
 
 
 def distance(class_program: ProtoProgram, image_program: ProtoProgram,
@@ -124,5 +135,13 @@ def distance(class_program: ProtoProgram, image_program: ProtoProgram,
 def classify(class_programs: list[ProtoProgram], image_program: ProtoProgram,
              config: DistanceConfig = DistanceConfig()) -> np.ndarray:
     """p(c = k | I) over the given classes: softmax of the negative distances."""
-    distances = np.array([distance(c, image_program, config) for c in class_programs])
-    return np.exp(log_softmax(-distances))
+    return classify_many(class_programs, [image_program], config)[0]
+
+
+def classify_many(class_programs: list[ProtoProgram], image_programs: list[ProtoProgram],
+                  config: DistanceConfig = DistanceConfig()) -> np.ndarray:
+    """(images, classes) probabilities; each class's draws and densities are computed once."""
+    sides = [_class_side(c, config) for c in class_programs]
+    distances = np.array([[sum(_kl_from_side(side, image, config).values()) for side in sides]
+                          for image in image_programs])
+    return np.exp(log_softmax(-distances, axis=1))

@@ -13,7 +13,7 @@
 2. **Classification.** For every N-way K-shot setting, the same seeded episodes
    as every other model (:func:`mitsuba_p3.benchmarks.episodes.sample_episodes`);
    each class program merges its K support programs, each query is classified by
-   :func:`mitsuba_p3.concepts.classify`. Accuracy per setting with a 95% interval
+   :func:`mitsuba_p3.concepts.classify_many`. Accuracy per setting with a 95% interval
    over episodes (normal approximation), and the calibration of the class
    probabilities (expected calibration error over 10 bins; a reliability plot).
 3. **Pose.** ADI (:mod:`mitsuba_p3.pose`) of every test image's posterior median
@@ -36,7 +36,7 @@ import numpy as np
 
 from .benchmarks.dataset import Dataset, load_dataset
 from .benchmarks.episodes import sample_episodes
-from .concepts import CONTINUOUS, DistanceConfig, ProtoProgram, classify
+from .concepts import CONTINUOUS, DistanceConfig, ProtoProgram, classify_many
 from .errors import MitsubaP3Error
 from .infer.mcmc import SamplerConfig
 
@@ -215,8 +215,8 @@ def classify_episodes(dataset: Dataset, cached: dict[int, CachedPosterior], n_wa
     for number, episode in enumerate(sample_episodes(dataset, n_way, k_shot, config.episodes, config.episode_seed,
                                                      config.queries_per_class)):
         programs = [ProtoProgram.merge([cached[i].program for i in shots]) for shots in episode.support]
-        for index, truth in episode.queries:
-            probabilities = classify(programs, cached[index].program, config.distance)
+        every = classify_many(programs, [cached[index].program for index, _ in episode.queries], config.distance)
+        for (index, truth), probabilities in zip(episode.queries, every):
             rows.append({"n_way": n_way, "k_shot": k_shot, "episode": number, "query": index, "truth": truth,
                          "predicted": int(np.argmax(probabilities)), "confidence": float(probabilities.max()),
                          "p_true": float(probabilities[truth])})
