@@ -160,6 +160,16 @@ def progress_bar(description: str):
     return bar, update
 
 
+def phase_progress_bar(description: str):
+    """A progress bar whose callback(phase, done, total) also names the current phase."""
+    bar, _ = progress_bar(description)
+
+    def track(phase: str, done: int, total: int) -> None:
+        bar.update(bar.task_ids[0], description=phase, completed=done, total=total)
+
+    return bar, track
+
+
 @benchmark_app.command("generate")
 def benchmark_generate(
     variant: str = typer.Argument(..., help="fsclvr, dark, room or ood."),
@@ -282,10 +292,7 @@ def infer(
     observed = load_observation(image)
     config = SamplerConfig(chains=chains, steps=steps, burn_in=burn_in, tune_rounds=tune_rounds,
                            tune_steps=tune_steps, seed=seed)
-    bar, update = progress_bar("sampling")
-
-    def track(phase: str, done: int, total: int) -> None:
-        bar.update(bar.task_ids[0], description=phase, completed=done, total=total)
+    bar, track = phase_progress_bar("sampling")
 
     with bar:
         posterior = infer_image(fitted, observed, default_likelihood(fitted, likelihood, sigma), config,
@@ -324,10 +331,7 @@ def evaluate(
     config = EvaluationConfig(likelihoods=chosen, renderer=renderer, episodes=episodes, jobs=jobs, dask=dask,
                               sampler=SamplerConfig(chains=chains, steps=steps, burn_in=burn_in,
                                                     tune_rounds=tune_rounds, tune_steps=tune_steps, seed=seed))
-    bar, update = progress_bar("posteriors")
-
-    def track(phase: str, done: int, total: int) -> None:
-        bar.update(bar.task_ids[0], description=phase, completed=done, total=total)
+    bar, track = phase_progress_bar("posteriors")
 
     with bar:
         results = run_evaluation(dataset, model, out, config, progress=track)

@@ -28,6 +28,7 @@ import json
 import os
 import tempfile
 import time
+from contextlib import ExitStack
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -167,19 +168,16 @@ def compute_posteriors(dataset: Dataset, model_dir: Path, run_dir: Path, config:
                                    asdict(config.sampler), config.keep_draws,
                                    str(posterior_path(run_dir, likelihood, index)))
             for index, likelihood in todo)
-    if config.dask:
-        from dask.distributed import Client
+    with ExitStack() as stack:
+        if config.dask:
+            from dask.distributed import Client
 
-        with Client(config.dask), parallel_config(backend="dask"):
-            for _ in Parallel(return_as="generator_unordered")(jobs):
-                done += 1
-                if progress:
-                    progress(done, total)
-        return
-    for _ in Parallel(n_jobs=config.jobs, return_as="generator_unordered")(jobs):
-        done += 1
-        if progress:
-            progress(done, total)
+            stack.enter_context(Client(config.dask))
+            stack.enter_context(parallel_config(backend="dask"))
+        for _ in Parallel(n_jobs=None if config.dask else config.jobs, return_as="generator_unordered")(jobs):
+            done += 1
+            if progress:
+                progress(done, total)
 
 
 # ----------------------------------------------------------------------------- scores
@@ -232,7 +230,7 @@ def pose_errors(dataset: Dataset, cached: dict[int, CachedPosterior]) -> list[di
 
 # ----------------------------------------------------------------------------- tables
 
-def _markdown(header: list[str], rows: list[list[str]]) -> str:
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows]) + "\n"
 
@@ -255,7 +253,7 @@ def write_tables(run_dir: Path, results: dict) -> dict:
         rows.append([baseline["model"]] + [
             f"{100 * a['mean']:.1f} ± {100 * a['half_width']:.1f}" if (a := baseline["accuracy"].get(name)) else "-"
             for name in settings])
-    (run_dir / "accuracy.md").write_text(_markdown(header, rows))
+    (run_dir / "accuracy.md").write_text(markdown_table(header, rows))
     with open(run_dir / "accuracy.csv", "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["model", "setting", "accuracy", "half_width_95", "episodes", "ece"])
@@ -270,7 +268,7 @@ def write_tables(run_dir: Path, results: dict) -> dict:
     adi_rows = [[c] + [f"{result['adi_per_class'][c]['mean']:.4f} / {result['adi_per_class'][c]['median']:.4f}"
                        for result in results.values()] for c in classes]
     adi_rows.append(["**all**"] + [f"{r['adi']['mean']:.4f} / {r['adi']['median']:.4f}" for r in results.values()])
-    (run_dir / "adi.md").write_text(_markdown(["class"] + [f"{k.upper()} mean / median (m)" for k in results],
+    (run_dir / "adi.md").write_text(markdown_table(["class"] + [f"{k.upper()} mean / median (m)" for k in results],
                                               adi_rows))
     with open(run_dir / "adi.csv", "w", newline="") as f:
         writer = csv.writer(f)

@@ -31,7 +31,7 @@ import sys
 import time
 from pathlib import Path
 
-from mitsuba_p3.evaluate import SETTINGS, EvaluationConfig, evaluate
+from mitsuba_p3.evaluate import SETTINGS, EvaluationConfig, evaluate, load_baselines, markdown_table
 from mitsuba_p3.infer.mcmc import SamplerConfig
 
 # Lighter sampling for the 840 evaluation posteriors (measured: see the README).
@@ -81,8 +81,6 @@ def write_tables(out: Path, results: dict) -> None:
     for model in ("P3", "NP3"):
         rows.append([model, "this project"] + [cells(results[c][model.lower()]) if c in results else "-"
                                                for c in COLUMNS])
-    from mitsuba_p3.evaluate import load_baselines
-
     found = {}
     for c in results:
         for baseline in load_baselines(out / "runs" / c):
@@ -92,11 +90,9 @@ def write_tables(out: Path, results: dict) -> None:
                                                for c in COLUMNS])
     for model, numbers in PAPER_ACCURACY.items():
         rows.append([model, "paper"] + [numbers[c] for c in COLUMNS])
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + ["| " + " | ".join(r) + " |"
-                                                                              for r in rows]
     note = ("\nCells: 5-way 1-shot / 5-way 5-shot / 10-way 1-shot / 10-way 5-shot accuracy (%). "
             "OOD has 10 test classes. The paper's numbers are on its own data sets: compare in spirit.\n")
-    (out / "accuracy.md").write_text("\n".join(lines) + "\n" + note)
+    (out / "accuracy.md").write_text(markdown_table(header, rows) + note)
     with open(out / "accuracy.csv", "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["benchmark", "model", "setting", "accuracy", "half_width_95", "ece", "paper"])
@@ -113,9 +109,7 @@ def write_tables(out: Path, results: dict) -> None:
     header = ["benchmark", "P3 mean ADI (m)", "NP3 mean ADI (m)", "paper P3 / NP3"]
     rows = [[TITLES[c], f"{results[c]['p3']['adi']['mean']:.4f}", f"{results[c]['np3']['adi']['mean']:.4f}",
              f"{PAPER_ADI[c][0]:.4f} / {PAPER_ADI[c][1]:.4f}"] for c in COLUMNS if c in results]
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + ["| " + " | ".join(r) + " |"
-                                                                              for r in rows]
-    (out / "adi.md").write_text("\n".join(lines) + "\n")
+    (out / "adi.md").write_text(markdown_table(header, rows))
     with open(out / "adi.csv", "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["benchmark", "model", "mean_adi_m", "median_adi_m", "paper_mean_adi_m"])
