@@ -23,11 +23,11 @@ from one posterior does not make the distance infinite.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.special import log_softmax
-from scipy.stats import gaussian_kde
 
 from .errors import MitsubaP3Error
 from .shapes import SHAPES
@@ -41,7 +41,49 @@ class DistanceConfig:
     samples: int = 500           # Monte Carlo draws of C_k per KL term
     seed: int = 0
     class_smoothing: float = 0.01  # pseudo-count added to each class frequency
-    max_points: int = 2000       # posterior samples kept per KDE (evenly thinned): bounds the cost
+    max_points: int = 500        # posterior samples kept per KDE (evenly thinned): bounds the cost
+
+
+@functools.cache
+def _log_kernel_sum():
+    """Jitted log sum_j exp(-|z_i - p_j|^2 / 2) for whitened queries z (m, d) and points p (n, d)."""
+    import jax
+    import jax.numpy as jnp
+
+    return jax.jit(lambda z, p: jax.nn.logsumexp(-0.5 * jnp.sum((z[:, None, :] - p[None]) ** 2, axis=-1), axis=1))
+
+
+class GaussianKde:
+    """A Gaussian KDE with Scott's bandwidth, the density of ``scipy.stats.gaussian_kde``.
+
+    Its own class because scipy's evaluation is a Python loop over points; here it
+    is one fused, jitted kernel sum in whitened coordinates (10-40x faster on the
+    evaluation's sizes), so scoring an episode takes a fraction of a second.
+    """
+
+    def __init__(self, points: np.ndarray):
+        points = np.asarray(points, np.float64)
+        n, d = points.shape
+        self.points = points
+        factor = n ** (-1.0 / (d + 4))                      # Scott's rule
+        covariance = np.atleast_2d(np.cov(points, rowvar=False)) * factor ** 2
+        # a property that never varied (a fixed prior) still gets a proper density
+        covariance += np.eye(d) * max(1e-12, 1e-9 * np.trace(covariance) / d)
+        self.cholesky = np.linalg.cholesky(covariance)
+        self._whiten = np.linalg.inv(self.cholesky)
+        self._white_points = (points @ self._whiten.T).astype(np.float32)
+        self._log_norm = (np.log(n) + 0.5 * d * np.log(2 * np.pi)
+                          + np.sum(np.log(np.diag(self.cholesky))))
+
+    def logpdf(self, x: np.ndarray) -> np.ndarray:
+        """log density at the rows of ``x`` (m, d)."""
+        z = np.asarray(x, np.float64).reshape(-1, self.points.shape[1]) @ self._whiten.T
+        return np.asarray(_log_kernel_sum()(z.astype(np.float32), self._white_points), np.float64) - self._log_norm
+
+    def resample(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """n draws (n, d): a random kernel centre plus its Gaussian noise."""
+        centres = self.points[rng.integers(len(self.points), size=n)]
+        return centres + rng.standard_normal((n, self.points.shape[1])) @ self.cholesky.T
 
 
 @dataclass
@@ -69,15 +111,13 @@ class ProtoProgram:
         return cls({name: np.concatenate([p.samples[name] for p in programs]) for name in PROPERTIES},
                    programs[0].max_points)
 
-    def kde(self, name: str) -> gaussian_kde:
-        """The Gaussian KDE of a continuous property (Scott's bandwidth)."""
+    def kde(self, name: str) -> GaussianKde:
+        """The Gaussian KDE of a continuous property (Scott's bandwidth), on at most ``max_points``."""
         if name not in self._kdes:
             points = self.samples[name]
             if len(points) > self.max_points:
                 points = points[np.linspace(0, len(points) - 1, self.max_points).astype(int)]
-            # a property that never varied (a fixed prior) still gets a proper density
-            jitter = 1e-9 * np.random.default_rng(0).normal(size=points.shape)
-            self._kdes[name] = gaussian_kde((points + jitter).T, bw_method="scott")
+            self._kdes[name] = GaussianKde(points)
         return self._kdes[name]
 
     def class_probabilities(self, smoothing: float = DistanceConfig.class_smoothing) -> np.ndarray:
@@ -88,14 +128,13 @@ class ProtoProgram:
         """log density of the joint (independent properties) at ``values``: property -> (n, d) / (n,)."""
         total = 0.0
         for name in CONTINUOUS:
-            total = total + self.kde(name).logpdf(np.asarray(values[name], np.float64).reshape(-1, self.samples[
-                name].shape[1]).T)
+            total = total + self.kde(name).logpdf(values[name])
         return total + np.log(self.class_probabilities()[np.asarray(values["class"], int)])
 
     def sample(self, n: int, seed: int = 0) -> dict:
         """n draws of every property from the program's densities."""
         rng = np.random.default_rng(seed)
-        out = {name: self.kde(name).resample(n, seed=rng).T for name in CONTINUOUS}
+        out = {name: self.kde(name).resample(n, rng) for name in CONTINUOUS}
         out["class"] = rng.choice(len(SHAPES), size=n, p=self.class_probabilities())
         return out
 
@@ -106,24 +145,37 @@ def _class_side(class_program: ProtoProgram, config: DistanceConfig) -> dict:
     side = {}
     for name in CONTINUOUS:
         p = class_program.kde(name)
-        x = p.resample(config.samples, seed=rng)
+        x = p.resample(config.samples, rng)
         side[name] = (x, p.logpdf(x))
     side["class"] = class_program.class_probabilities(config.class_smoothing)
     return side
 
 
-def _kl_from_side(side: dict, image_program: ProtoProgram, config: DistanceConfig) -> dict:
-    terms = {name: float(np.mean(log_p - image_program.kde(name).logpdf(x)))
-             for name, (x, log_p) in ((n, side[n]) for n in CONTINUOUS)}
-    p, q = side["class"], image_program.class_probabilities(config.class_smoothing)
-    terms["class"] = float(np.sum(p * (np.log(p) - np.log(q))))
+def _kl_matrix(sides: list[dict], image_programs: list[ProtoProgram], config: DistanceConfig) -> dict:
+    """Per property, the (images, classes) matrix of KL(C_k || C_I) estimates.
+
+    Every class's draws of a property are stacked, so each image's KDE is
+    evaluated once per property for all classes together.
+    """
+    n = config.samples
+    terms = {}
+    for name in CONTINUOUS:
+        x = np.concatenate([side[name][0] for side in sides])
+        log_p = np.stack([side[name][1] for side in sides]).mean(axis=1)
+        log_q = np.stack([image.kde(name).logpdf(x).reshape(len(sides), n).mean(axis=1)
+                          for image in image_programs])
+        terms[name] = log_p[None, :] - log_q
+    p = np.stack([side["class"] for side in sides])                          # (classes, shapes)
+    q = np.stack([image.class_probabilities(config.class_smoothing) for image in image_programs])
+    terms["class"] = np.sum(p * np.log(p), axis=1)[None, :] - np.log(q) @ p.T
     return terms
 
 
 def kl_terms(class_program: ProtoProgram, image_program: ProtoProgram,
              config: DistanceConfig = DistanceConfig()) -> dict:
     """The per-property KL(C_k || C_I) of the module docstring."""
-    return _kl_from_side(_class_side(class_program, config), image_program, config)
+    matrix = _kl_matrix([_class_side(class_program, config)], [image_program], config)
+    return {name: float(value[0, 0]) for name, value in matrix.items()}
 
 
 def distance(class_program: ProtoProgram, image_program: ProtoProgram,
@@ -142,6 +194,5 @@ def classify_many(class_programs: list[ProtoProgram], image_programs: list[Proto
                   config: DistanceConfig = DistanceConfig()) -> np.ndarray:
     """(images, classes) probabilities; each class's draws and densities are computed once."""
     sides = [_class_side(c, config) for c in class_programs]
-    distances = np.array([[sum(_kl_from_side(side, image, config).values()) for side in sides]
-                          for image in image_programs])
+    distances = sum(_kl_matrix(sides, image_programs, config).values())
     return np.exp(log_softmax(-distances, axis=1))

@@ -19,19 +19,34 @@ def test_kl_estimate_matches_gaussians_and_its_variance_falls_with_samples():
     """KL of two 1-D Gaussians N(0, 1) || N(1, 1) is 0.5; the KDEs (Scott) widen both a little.
     The estimator's spread over seeds is measured and must fall like 1 / sqrt(n)."""
     rng = np.random.default_rng(0)
-    p = ProtoProgram({"x": rng.normal(0, 1, (4000, 1)), "class": np.zeros(4000, int)})
-    q = ProtoProgram({"x": rng.normal(1, 1, (4000, 1)), "class": np.zeros(4000, int)})
+    p = ProtoProgram({"x": rng.normal(0, 1, (4000, 1)), "class": np.zeros(4000, int)}, max_points=4000)
+    q = ProtoProgram({"x": rng.normal(1, 1, (4000, 1)), "class": np.zeros(4000, int)}, max_points=4000)
     p.samples, q.samples = dict(p.samples), dict(q.samples)
     estimates = {}
     for n in (100, 1600):
         values = []
         for seed in range(20):
-            x = p.kde("x").resample(n, seed=np.random.default_rng(seed))
+            x = p.kde("x").resample(n, np.random.default_rng(seed))
             values.append(np.mean(p.kde("x").logpdf(x) - q.kde("x").logpdf(x)))
         estimates[n] = np.array(values)
     assert estimates[1600].mean() == pytest.approx(0.5 * 1 / (1 + 4000 ** -0.4), abs=0.05)
     ratio = estimates[100].std() / estimates[1600].std()
     assert 2.0 < ratio < 8.0, ratio   # sqrt(16) = 4
+
+
+def test_kde_density_matches_scipy_and_integrates_its_samples():
+    """Same density as scipy.stats.gaussian_kde (Scott), in 1-D and 3-D; resampling draws from it."""
+    from scipy.stats import gaussian_kde
+    from mitsuba_p3.concepts import GaussianKde
+    rng = np.random.default_rng(1)
+    for d in (1, 3):
+        points = rng.normal(size=(300, d)) @ np.triu(np.ones((d, d)))
+        x = rng.normal(size=(50, d)) * 2
+        np.testing.assert_allclose(GaussianKde(points).logpdf(x), gaussian_kde(points.T).logpdf(x.T), rtol=1e-5)
+        draws = GaussianKde(points).resample(20000, rng)
+        np.testing.assert_allclose(draws.mean(axis=0), points.mean(axis=0), atol=0.06 * d)
+    constant = GaussianKde(np.full((100, 1), 0.3))            # a property held fixed by its prior
+    assert np.isfinite(constant.logpdf(np.array([[0.3]]))).all()
 
 
 def test_distance_is_zero_for_itself_and_grows_with_difference():

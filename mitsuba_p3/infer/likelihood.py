@@ -48,24 +48,39 @@ def colour_log_likelihood(observed, renders, sigma: float):
     return -0.5 / sigma ** 2 * jnp.sum(residual * residual, axis=(-3, -2, -1)) - constant
 
 
+def observe(observed: np.ndarray, config: LikelihoodConfig, channels: list[Channel] | None = None) -> dict:
+    """What the likelihood needs of an observed image (H, W, 3): the image, and for NP3 its
+    selected VGG16 features. A pytree, so a compiled sampler takes it as an argument and
+    serves every image of the same size without recompiling."""
+    if config.kind == "np3" and not channels:
+        from ..errors import MitsubaP3Error
+
+        raise MitsubaP3Error("the np3 likelihood needs the fitted model's selected VGG16 channels")
+    observation = {"image": np.asarray(observed, np.float32)}
+    if config.kind == "np3":
+        observation["features"] = [np.asarray(f[0]) for f in selected_features(observation["image"][None], channels)]
+    return observation
+
+
+def score(observation: dict, renders, config: LikelihoodConfig, channels: list[Channel] | None = None):
+    """(B, H, W, 3) renders -> (B,) log-likelihoods of ``observation`` (JAX)."""
+    log_lik = colour_log_likelihood(observation["image"], renders, config.sigma)
+    if config.kind == "np3":
+        features = selected_features(renders, channels)
+        observed = [f[None] for f in observation["features"]]
+        log_lik = log_lik - config.neural_weight * neural_distance(observed, features)
+    return log_lik
+
+
 class ImageLikelihood:
     """log p(I | render) for a fixed observed image, batched over renders."""
 
     def __init__(self, observed: np.ndarray, config: LikelihoodConfig, channels: list[Channel] | None = None):
-        self.observed = np.asarray(observed, np.float32)
         self.config = config
         self.channels = channels or []
-        if config.kind == "np3" and not self.channels:
-            from ..errors import MitsubaP3Error
-
-            raise MitsubaP3Error("the np3 likelihood needs the fitted model's selected VGG16 channels")
-        if config.kind == "np3":
-            self.observed_features = [np.asarray(f) for f in selected_features(self.observed[None], self.channels)]
+        self.observation = observe(observed, config, self.channels)
+        self.observed = self.observation["image"]
 
     def __call__(self, renders):
         """(B, H, W, 3) renders -> (B,) log-likelihoods (JAX)."""
-        log_lik = colour_log_likelihood(self.observed, renders, self.config.sigma)
-        if self.config.kind == "np3":
-            features = selected_features(renders, self.channels)
-            log_lik = log_lik - self.config.neural_weight * neural_distance(self.observed_features, features)
-        return log_lik
+        return score(self.observation, renders, self.config, self.channels)

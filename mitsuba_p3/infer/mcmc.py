@@ -51,6 +51,7 @@ renders instead of 3.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import asdict, dataclass
 from typing import Callable, NamedTuple
 
@@ -172,9 +173,25 @@ def _symmetry_move(prior):
     return move
 
 
-def _block_runner(logdensity_fn: Callable, prior, threshold: float, config: SamplerConfig,
+class _Compiled(NamedTuple):
+    """The sampler settings the compiled block depends on (the rest change only the loop around it)."""
+    chains: int
+    block: int
+    walks_per_step: int
+    mode_jump_probability: float
+    symmetry_moves: bool
+
+    @classmethod
+    def of(cls, config: SamplerConfig) -> "_Compiled":
+        return cls(*(getattr(config, name) for name in cls._fields))
+
+
+@functools.lru_cache(maxsize=8)
+def _block_runner(logdensity_fn: Callable, prior, threshold: float, config: _Compiled,
                   extra_move: Callable | None = None):
-    """A jitted function running ``config.block`` MH steps of every chain."""
+    """A jitted ``run(key, states, proposal, observation)`` running ``config.block`` MH steps of
+    every chain. Cached: the same target (e.g. one :class:`PosteriorCore`'s bound methods) reuses
+    the compiled function for every observation of the same shape."""
     import jax
     import jax.numpy as jnp
     from blackjax.mcmc.random_walk import build_rmh
@@ -183,14 +200,15 @@ def _block_runner(logdensity_fn: Callable, prior, threshold: float, config: Samp
     symmetry = _symmetry_move(prior)
 
     @jax.jit
-    def run(key, states, proposal):
+    def run(key, states, proposal, observation):
         generate = _transition(Proposal(*proposal), threshold, config)
+        target = lambda z: logdensity_fn(z, observation)  # noqa: E731
 
         def walk(states, key):
             k_propose, k_walk, k_symmetry = jax.random.split(key, 3)
             proposed, jumps = jax.vmap(generate)(jax.random.split(k_propose, config.chains), states.position)
             keys = jax.random.split(k_walk, config.chains)
-            new, info = jax.vmap(lambda k, s, p: kernel(k, s, logdensity_fn, lambda _, __: p))(
+            new, info = jax.vmap(lambda k, s, p: kernel(k, s, target, lambda _, __: p))(
                 keys, states, proposed)
             # record (walk accepted, walk proposed, jump accepted, jump proposed) per chain; a void
             # proposal (no move) counts as neither
@@ -205,7 +223,8 @@ def _block_runner(logdensity_fn: Callable, prior, threshold: float, config: Samp
             k_walks, k_extra = jax.random.split(key)
             states, moves = jax.lax.scan(walk, states, jax.random.split(k_walks, config.walks_per_step))
             if extra_move is not None:
-                states, _ = jax.vmap(extra_move)(jax.random.split(k_extra, config.chains), states)
+                states, _ = jax.vmap(extra_move, in_axes=(0, 0, None))(
+                    jax.random.split(k_extra, config.chains), states, observation)
             return states, (states.position, states.logdensity, moves.sum(axis=0))
 
         return jax.lax.scan(one_step, states, jax.random.split(key, config.block))
@@ -257,16 +276,24 @@ def _cull(states, logdensity: np.ndarray, margin: float, rng: np.random.Generato
     return type(states)(states.position[index], states.logdensity[index]), int(len(bad))
 
 
-def initial_positions(logdensity_fn: Callable, prior, config: SamplerConfig, rng: np.random.Generator):
-    """The best of ``init_candidates`` prior draws (batched evaluation), stratified by mode.
+@functools.lru_cache(maxsize=8)
+def _batch_logdensity(logdensity_fn: Callable):
+    """The jitted, vmapped ``logdensity_fn(z, observation)`` over positions (cached like the runner)."""
+    import jax
+
+    return jax.jit(jax.vmap(logdensity_fn, in_axes=(0, None)))
+
+
+def initial_positions(logdensity_fn: Callable, prior, config: SamplerConfig, rng: np.random.Generator,
+                      observation=()):
+    """The best of ``init_candidates`` prior draws (batched evaluation), stratified by mode,
+    and their log densities.
 
     Chains go round-robin to the modes in order of their best candidate, so every
     plausible mode starts with some chains; culling during tuning removes the
     hopeless ones."""
-    import jax
-
     candidates = prior.sample(rng, max(config.init_candidates, config.chains)).astype(np.float32)
-    scores = np.asarray(jax.jit(jax.vmap(logdensity_fn))(candidates))
+    scores = np.asarray(_batch_logdensity(logdensity_fn)(candidates, observation))
     scores = np.where(np.isfinite(scores), scores, -np.inf)
     order = np.argsort(-scores)
     labels = mode_of(candidates[order], mode_threshold(prior))
@@ -276,32 +303,44 @@ def initial_positions(logdensity_fn: Callable, prior, config: SamplerConfig, rng
         for queue in queues:
             if queue and len(chosen) < config.chains:
                 chosen.append(queue.pop(0))
-    return candidates[np.array(chosen)]
+    chosen = np.array(chosen)
+    return candidates[chosen], scores[chosen].astype(np.float32)
 
 
 def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
            progress: Callable[[str, int, int], None] | None = None,
-           extra_move: Callable | None = None, walk_mask: np.ndarray | None = None) -> SamplerRun:
+           extra_move: Callable | None = None, walk_mask: np.ndarray | None = None,
+           observation=None) -> SamplerRun:
     """Run initialisation, tuning, burn-in and sampling; returns the kept draws.
 
     ``extra_move(key, state) -> (state, accepted)``, when given, runs after every
     random-walk step (e.g. :meth:`PosteriorModel.material_move`); ``walk_mask`` (15,)
-    then limits the random walk to the dimensions that move does not update."""
+    then limits the random walk to the dimensions that move does not update.
+
+    With ``observation`` (a pytree), the target is ``logdensity_fn(z, observation)``
+    and the move ``extra_move(key, state, observation)``: the data enter the compiled
+    sampler as an argument, so a second image with the same functions (e.g. a shared
+    :class:`PosteriorCore`'s methods) runs without recompiling."""
     import jax
     import jax.numpy as jnp
-    from blackjax.mcmc.random_walk import init
+    from blackjax.mcmc.random_walk import RWState
 
     config = config or SamplerConfig()
+    if observation is None:   # a target of the position alone
+        target, move = logdensity_fn, extra_move
+        logdensity_fn = lambda z, _: target(z)  # noqa: E731
+        extra_move = None if move is None else (lambda key, state, _: move(key, state))
+        observation = ()
     rng = np.random.default_rng(config.seed)
     key = jax.random.PRNGKey(config.seed)
-    start = initial_positions(logdensity_fn, prior, config, rng)
-    states = jax.vmap(lambda z: init(z, logdensity_fn))(jnp.asarray(start))
+    start, scores = initial_positions(logdensity_fn, prior, config, rng, observation)
+    states = RWState(jnp.asarray(start), jnp.asarray(scores))
     dimension = start.shape[1]
     mask = np.ones(dimension, np.float32) if walk_mask is None else np.asarray(walk_mask, np.float32)
     proposal = Proposal.isotropic(config.initial_scale, mask)
     factor = 1.0
     threshold = mode_threshold(prior)
-    run = _block_runner(logdensity_fn, prior, threshold, config, extra_move)
+    run = _block_runner(logdensity_fn, prior, threshold, _Compiled.of(config), extra_move)
     tuning = []
     blocks_per_round = max(1, -(-config.tune_steps // config.block))
     total = (config.tune_rounds * blocks_per_round + -(-config.burn_in // config.block)
@@ -314,7 +353,7 @@ def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
         out = []
         for _ in range(blocks):
             key, sub = jax.random.split(key)
-            states, draws = run(sub, states, tuple(jnp.asarray(a) for a in proposal))
+            states, draws = run(sub, states, tuple(jnp.asarray(a) for a in proposal), observation)
             out.append([np.asarray(a) for a in draws])
             done += config.block
             if progress:

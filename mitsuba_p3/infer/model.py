@@ -18,7 +18,7 @@ import numpy as np
 from ..fit.model import FittedModel
 from ..fit.priors import SLICES, Prior, render_params
 from ..render.contract import OBJECT_SHAPES
-from .likelihood import ImageLikelihood, LikelihoodConfig
+from .likelihood import LikelihoodConfig, observe, score
 
 OBJECT_KEYS = ("shift", "theta", "scale", "kappa", "colour", "ambient", "diffuse", "specular", "shininess")
 RENDERERS = ("mitsuba", "jax")
@@ -90,11 +90,20 @@ def jax_render_function(renderer, bases: bool = False) -> Callable:
     return render
 
 
-class PosteriorModel:
-    """Prior, renderer and likelihood of one observed image; :meth:`logdensity` is the sampler's target."""
+class PosteriorCore:
+    """Prior, renderer and likelihood of one fitted model at one image size: the whole
+    posterior except the observed image, which every method takes as ``observation``
+    (a pytree from :func:`mitsuba_p3.infer.likelihood.observe`).
 
-    def __init__(self, fitted: FittedModel, observed: np.ndarray, likelihood: LikelihoodConfig | None = None,
-                 renderer: str = "mitsuba"):
+    Because the image is an argument rather than a constant, one core -- and the
+    sampler compiled for it -- serves every image of a data set: :meth:`shared`
+    returns the cached core, so the Mitsuba scene load and the JIT compilation
+    (several seconds) are paid once per process rather than once per image.
+    """
+
+    _cache: dict = {}
+
+    def __init__(self, fitted: FittedModel, likelihood: LikelihoodConfig, renderer: str, height: int, width: int):
         from ..errors import MitsubaP3Error
         from ..render import make_renderer
 
@@ -102,13 +111,10 @@ class PosteriorModel:
             raise MitsubaP3Error(f"unknown renderer {renderer!r}; choose mitsuba or jax")
         self.fitted = fitted
         self.prior = fitted.prior
-        self.config = likelihood or LikelihoodConfig()
-        observed = np.asarray(observed, np.float32)
-        height, width = observed.shape[:2]
+        self.config = likelihood
         self.renderer_kind = renderer
         self.renderer = make_renderer(fitted.scene(), renderer, height=height, width=width, shadows=False)
-        channels = fitted.channels if self.config.kind == "np3" else None
-        self.likelihood = ImageLikelihood(observed, self.config, channels)
+        self.channels = fitted.channels if likelihood.kind == "np3" else None
         if renderer == "mitsuba":
             self._render = mitsuba_render_function(self.renderer)
             self._bases = mitsuba_render_function(self.renderer, bases=True)
@@ -116,19 +122,34 @@ class PosteriorModel:
             self._render = jax_render_function(self.renderer)
             self._bases = jax_render_function(self.renderer, bases=True)
 
+    @classmethod
+    def shared(cls, fitted: FittedModel, likelihood: LikelihoodConfig, renderer: str, height: int,
+               width: int) -> "PosteriorCore":
+        """The process's core for this model (folder and contents), likelihood, renderer and size."""
+        import json
+
+        key = (str(fitted.root.resolve()), json.dumps(fitted.info, sort_keys=True), likelihood, renderer,
+               height, width)
+        if key not in cls._cache:
+            cls._cache[key] = cls(fitted, likelihood, renderer, height, width)
+        return cls._cache[key]
+
+    def observe(self, observed: np.ndarray) -> dict:
+        return observe(observed, self.config, self.channels)
+
     def render(self, z):
         """Image(s) of unconstrained position(s) z (JAX)."""
         return self._render(contract_params(self.prior, z))
 
-    def log_likelihood(self, z):
+    def log_likelihood(self, z, observation):
         """log p(I | z) of one position z (15,) (JAX; vmap for many)."""
-        return self.likelihood(self.render(z)[None])[0]
+        return score(observation, self.render(z)[None], self.config, self.channels)[0]
 
-    def logdensity(self, z):
+    def logdensity(self, z, observation):
         """log p(z) + log p(I | z) of one position z (15,) (JAX; vmap for many)."""
-        return self.prior.log_prob(z) + self.log_likelihood(z)
+        return self.prior.log_prob(z) + self.log_likelihood(z, observation)
 
-    def material_move(self, key, state):
+    def material_move(self, key, state, observation):
         """Metropolis-within-Gibbs update of the materials of one chain's state: colour, then (k_a, k_d, k_s).
 
         One render of the material bases (:meth:`render_bases` of the renderers) makes
@@ -148,12 +169,12 @@ class PosteriorModel:
         bases = self._bases(contract_params(self.prior, state.position))
         # Both conditionals need only inner products of A, D, S and the residual r = I_obs - F,
         # per channel: one (3, 4, 4) Gram matrix serves both moves.
-        vectors = jnp.concatenate([bases[..., :3, :], (self.likelihood.observed - bases[..., 3, :])[..., None, :]],
+        vectors = jnp.concatenate([bases[..., :3, :], (observation["image"] - bases[..., 3, :])[..., None, :]],
                                   axis=-2).reshape(-1, 12)                       # (pixels, 4 x 3)
         full = (vectors.T @ vectors).reshape(4, 3, 4, 3)                            # one matmul: XLA's fast path
         gram = jnp.einsum("icjc->cij", full) / self.config.sigma ** 2
-        state, colour_ok = self._colour_move(k_colour, state, bases, gram)
-        state, weights_ok = self._weights_move(k_weights, state, bases, gram)
+        state, colour_ok = self._colour_move(k_colour, state, bases, gram, observation)
+        state, weights_ok = self._weights_move(k_weights, state, bases, gram, observation)
         return state, colour_ok & weights_ok
 
     def _image_from_bases(self, bases, z):
@@ -164,7 +185,7 @@ class PosteriorModel:
         A, D, S, F = (bases[..., i, :] for i in range(4))
         return jnp.clip(p["colour"] * (p["ambient"] * A + p["diffuse"] * D) + p["specular"] * S + F, 0.0, 1.0)
 
-    def _colour_move(self, key, state, bases, gram):
+    def _colour_move(self, key, state, bases, gram, observation):
         """The colour's conditional given the weights: a 3-D Gaussian mixture (one per GMM component)."""
         import jax
         import jax.numpy as jnp
@@ -196,9 +217,10 @@ class PosteriorModel:
         proposal = post_mean[component] + jax.random.normal(k_noise, (3,)) / jnp.sqrt(post_precision[component])
         current = jnp.asarray(gmm.mean) + jnp.asarray(gmm.std) * position[cols]
         new_position = position.at[cols].set((proposal - gmm.mean) / gmm.std)
-        return self._independence_mh(k_accept, state, new_position, bases, log_q(current) - log_q(proposal))
+        return self._independence_mh(k_accept, state, new_position, bases, log_q(current) - log_q(proposal),
+                                     observation)
 
-    def _weights_move(self, key, state, bases, gram):
+    def _weights_move(self, key, state, bases, gram, observation):
         """The weights' conditional given the colour: a mixture of 8 trivariate Gaussians
         (their priors are independent 2-component GMMs)."""
         import itertools
@@ -243,15 +265,41 @@ class PosteriorModel:
         proposal = mean[combo] + jax.scipy.linalg.solve_triangular(chol[combo].T, noise, lower=False)
         current = loc + std * position[dims]
         new_position = position.at[dims].set((proposal - loc) / std)
-        return self._independence_mh(k_accept, state, new_position, bases, log_q(current) - log_q(proposal))
+        return self._independence_mh(k_accept, state, new_position, bases, log_q(current) - log_q(proposal),
+                                     observation)
 
-    def _independence_mh(self, key, state, new_position, bases, log_q_ratio):
+    def _independence_mh(self, key, state, new_position, bases, log_q_ratio, observation):
         """Accept or reject an independence proposal with the exact log joint (image from the bases)."""
         import jax
         import jax.numpy as jnp
 
         image = self._image_from_bases(bases, new_position)
-        new_logdensity = self.prior.log_prob(new_position) + self.likelihood(image[None])[0]
+        new_logdensity = (self.prior.log_prob(new_position)
+                          + score(observation, image[None], self.config, self.channels)[0])
         accept = jnp.log(jax.random.uniform(key)) < new_logdensity - state.logdensity + log_q_ratio
         return (type(state)(jnp.where(accept, new_position, state.position),
                             jnp.where(accept, new_logdensity, state.logdensity)), accept)
+
+
+class PosteriorModel:
+    """The posterior of one observed image: a shared :class:`PosteriorCore` and the image's
+    observation, with the core's methods bound to it."""
+
+    def __init__(self, fitted: FittedModel, observed: np.ndarray, likelihood: LikelihoodConfig | None = None,
+                 renderer: str = "mitsuba"):
+        observed = np.asarray(observed, np.float32)
+        self.core = PosteriorCore.shared(fitted, likelihood or LikelihoodConfig(), renderer, *observed.shape[:2])
+        self.observation = self.core.observe(observed)
+        self.prior, self.renderer = self.core.prior, self.core.renderer
+
+    def render(self, z):
+        return self.core.render(z)
+
+    def log_likelihood(self, z):
+        return self.core.log_likelihood(z, self.observation)
+
+    def logdensity(self, z):
+        return self.core.logdensity(z, self.observation)
+
+    def material_move(self, key, state):
+        return self.core.material_move(key, state, self.observation)

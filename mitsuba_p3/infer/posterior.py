@@ -166,8 +166,10 @@ def infer_image(fitted: FittedModel, observed: np.ndarray, likelihood: Likelihoo
     walk_mask = np.ones(DIMENSION, np.float32)
     for name in ("colour", "ambient", "diffuse", "specular"):
         walk_mask[SLICES[name]] = 0.0 if gibbs else 1.0
-    run = sample(model.logdensity, model.prior, sampler, progress,
-                 extra_move=model.material_move if gibbs else None, walk_mask=walk_mask)
+    core = model.core
+    run = sample(core.logdensity, model.prior, sampler, progress,
+                 extra_move=core.material_move if gibbs else None, walk_mask=walk_mask,
+                 observation=model.observation)
     seconds = time.perf_counter() - start
     info = {"model": str(fitted.root), "likelihood": likelihood.kind, "sigma": likelihood.sigma,
             "renderer": renderer, "sampler": run.config, "tuning": run.tuning, "seconds": seconds,
