@@ -15,7 +15,7 @@ Baselines evaluated into ``runs/V`` beforehand (``mitsuba-p3 baseline evaluate
 TRAINED data/V --out results/runs/V``) appear in the accuracy table too.
 
     python scripts/reproduce_tables.py [--data data] [--out results] [--episodes 100] [--jobs 1]
-        [--chains 8 --steps 200 ...] [--benchmarks fsclvr,dark,room,ood]
+        [--chains 8 --steps 200 ...] [--benchmarks fsclvr,dark,room,ood] [--likelihoods p3,np3]
 
 The sampler settings default to a lighter preset than ``mitsuba-p3 infer`` (see
 ``PRESET``): 840 posteriors (420 images x P3/NP3) at the inference defaults
@@ -79,8 +79,8 @@ def write_tables(out: Path, results: dict) -> None:
     header = ["model", "source"] + [TITLES[c] for c in COLUMNS]
     rows = []
     for model in ("P3", "NP3"):
-        rows.append([model, "this project"] + [cells(results[c][model.lower()]) if c in results else "-"
-                                               for c in COLUMNS])
+        rows.append([model, "this project"] + [cells(results[c][model.lower()]) if model.lower() in results.get(c, {})
+                                               else "-" for c in COLUMNS])
     found = {}
     for c in results:
         for baseline in load_baselines(out / "runs" / c):
@@ -99,7 +99,7 @@ def write_tables(out: Path, results: dict) -> None:
         for c in COLUMNS:
             if c not in results:
                 continue
-            for model in ("p3", "np3"):
+            for model in (m for m in ("p3", "np3") if m in results[c]):
                 paper = PAPER_ACCURACY[model.upper()][c].split("/")
                 for i, (n, k) in enumerate(SETTINGS):
                     a = results[c][model]["accuracy"].get(f"{n}-way {k}-shot")
@@ -107,8 +107,9 @@ def write_tables(out: Path, results: dict) -> None:
                         writer.writerow([c, model, f"{n}-way {k}-shot", a["mean"], a["half_width"], a["ece"],
                                          float(paper[i]) / 100])
     header = ["benchmark", "P3 mean ADI (m)", "NP3 mean ADI (m)", "paper P3 / NP3"]
-    rows = [[TITLES[c], f"{results[c]['p3']['adi']['mean']:.4f}", f"{results[c]['np3']['adi']['mean']:.4f}",
-             f"{PAPER_ADI[c][0]:.4f} / {PAPER_ADI[c][1]:.4f}"] for c in COLUMNS if c in results]
+    adi = lambda c, m: f"{results[c][m]['adi']['mean']:.4f}" if m in results[c] else "-"  # noqa: E731
+    rows = [[TITLES[c], adi(c, "p3"), adi(c, "np3"), f"{PAPER_ADI[c][0]:.4f} / {PAPER_ADI[c][1]:.4f}"]
+            for c in COLUMNS if c in results]
     (out / "adi.md").write_text(markdown_table(header, rows))
     with open(out / "adi.csv", "w", newline="") as f:
         writer = csv.writer(f)
@@ -116,8 +117,9 @@ def write_tables(out: Path, results: dict) -> None:
         for c in COLUMNS:
             if c in results:
                 for i, model in enumerate(("p3", "np3")):
-                    adi = results[c][model]["adi"]
-                    writer.writerow([c, model, adi["mean"], adi["median"], PAPER_ADI[c][i]])
+                    if model in results[c]:
+                        a = results[c][model]["adi"]
+                        writer.writerow([c, model, a["mean"], a["median"], PAPER_ADI[c][i]])
 
 
 def main() -> None:
@@ -127,6 +129,7 @@ def main() -> None:
     parser.add_argument("--benchmarks", default=",".join(("fsclvr", "dark", "room", "ood")))
     parser.add_argument("--episodes", type=int, default=100)
     parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--likelihoods", default="p3,np3", help="comma-separated: p3, np3 or both")
     for name, value in PRESET.items():
         parser.add_argument("--" + name.replace("_", "-"), type=int, default=value)
     args = parser.parse_args()
@@ -136,7 +139,8 @@ def main() -> None:
     for variant in args.benchmarks.split(","):
         folder, model = prepare(args.data, variant)
         start = time.perf_counter()
-        config = EvaluationConfig(sampler=sampler, episodes=args.episodes, jobs=args.jobs)
+        config = EvaluationConfig(likelihoods=tuple(args.likelihoods.split(",")), sampler=sampler,
+                                  episodes=args.episodes, jobs=args.jobs)
         results[variant] = evaluate(folder, model, args.out / "runs" / variant, config,
                                     progress=lambda phase, done, total: print(f"\r{variant} {phase}: {done}/{total}",
                                                                               end="", flush=True))

@@ -106,6 +106,28 @@ def test_sampler_is_reproducible(fitted, observed):
     np.testing.assert_array_equal(a, b)
 
 
+def test_compiled_sampler_serves_a_second_image_exactly(fitted, observed):
+    """The image is an argument of the shared, compiled sampler: a second image reuses it (no new
+    core, a runner cache hit) and gets the very draws a fresh process state would give it."""
+    from mitsuba_p3.infer import mcmc
+    from mitsuba_p3.infer.model import PosteriorCore
+
+    config = SamplerConfig(chains=4, steps=20, burn_in=10, tune_rounds=1, tune_steps=20, block=10,
+                           init_candidates=16, seed=3)
+    other = np.ascontiguousarray(observed[:, ::-1])          # the object mirrored: another posterior
+    infer_image(fitted, observed, LikelihoodConfig("p3"), config)
+    cores, hits = len(PosteriorCore._cache), mcmc._block_runner.cache_info().hits
+    reused = infer_image(fitted, other, LikelihoodConfig("p3"), config).draws("z")
+    assert len(PosteriorCore._cache) == cores and mcmc._block_runner.cache_info().hits > hits
+    PosteriorCore._cache.clear()
+    mcmc._block_runner.cache_clear()
+    mcmc._batch_logdensity.cache_clear()
+    fresh = infer_image(fitted, other, LikelihoodConfig("p3"), config).draws("z")
+    np.testing.assert_allclose(reused, fresh, atol=1e-5)
+    first = infer_image(fitted, observed, LikelihoodConfig("p3"), config).draws("z")
+    assert np.abs(np.median(first[..., 0]) - np.median(reused[..., 0])) > 0.5   # shift x follows the image
+
+
 def test_circular_mode_wraps():
     angles = np.concatenate([np.full(50, np.pi - 0.05), np.full(50, -np.pi + 0.05), [0.0] * 30])
     assert abs(abs(circular_mode(angles)) - np.pi) < 0.1
