@@ -42,6 +42,13 @@ class DistanceConfig:
     seed: int = 0
     class_smoothing: float = 0.01  # pseudo-count added to each class frequency
     max_points: int = 500        # posterior samples kept per KDE (evenly thinned): bounds the cost
+    properties: tuple = PROPERTIES  # the terms of the distance (all of them in the paper; fewer for ablations)
+
+    def __post_init__(self):
+        unknown = set(self.properties) - set(PROPERTIES)
+        if unknown or not self.properties:
+            raise MitsubaP3Error(f"distance properties must be a non-empty subset of {PROPERTIES}; "
+                                 f"got {tuple(self.properties)}")
 
 
 @functools.cache
@@ -143,7 +150,7 @@ def _class_side(class_program: ProtoProgram, config: DistanceConfig) -> dict:
     """The seeded draws x ~ C_k and log C_k(x) per property: shared by every image compared with C_k."""
     rng = np.random.default_rng(config.seed)
     side = {}
-    for name in CONTINUOUS:
+    for name in (v for v in CONTINUOUS if v in config.properties):
         p = class_program.kde(name)
         x = p.resample(config.samples, rng)
         side[name] = (x, p.logpdf(x))
@@ -159,15 +166,16 @@ def _kl_matrix(sides: list[dict], image_programs: list[ProtoProgram], config: Di
     """
     n = config.samples
     terms = {}
-    for name in CONTINUOUS:
+    for name in (v for v in CONTINUOUS if v in config.properties):
         x = np.concatenate([side[name][0] for side in sides])
         log_p = np.stack([side[name][1] for side in sides]).mean(axis=1)
         log_q = np.stack([image.kde(name).logpdf(x).reshape(len(sides), n).mean(axis=1)
                           for image in image_programs])
         terms[name] = log_p[None, :] - log_q
-    p = np.stack([side["class"] for side in sides])                          # (classes, shapes)
-    q = np.stack([image.class_probabilities(config.class_smoothing) for image in image_programs])
-    terms["class"] = np.sum(p * np.log(p), axis=1)[None, :] - np.log(q) @ p.T
+    if "class" in config.properties:
+        p = np.stack([side["class"] for side in sides])                      # (classes, shapes)
+        q = np.stack([image.class_probabilities(config.class_smoothing) for image in image_programs])
+        terms["class"] = np.sum(p * np.log(p), axis=1)[None, :] - np.log(q) @ p.T
     return terms
 
 
