@@ -65,6 +65,18 @@ def test_distance_is_reproducible_with_its_seed():
     assert distance(a, b, DistanceConfig(seed=3)) == distance(a, b, DistanceConfig(seed=3))
 
 
+def test_distance_over_a_property_subset():
+    """An ablation's distance keeps only the chosen terms; unknown or empty subsets are refused."""
+    rng = np.random.default_rng(4)
+    a, b = _program(rng), _program(rng, shift=0.05, shape=2)
+    only = kl_terms(a, b, DistanceConfig(properties=("colour", "class")))
+    assert set(only) == {"colour", "class"} and only["class"] > 1.0
+    with pytest.raises(Exception, match="subset"):
+        DistanceConfig(properties=("pose",))
+    with pytest.raises(Exception, match="subset"):
+        DistanceConfig(properties=())
+
+
 def test_merge_sample_log_prob_and_classify():
     rng = np.random.default_rng(3)
     shots = [_program(rng, shift=0.5, n=400) for _ in range(3)]
