@@ -135,7 +135,12 @@ def main() -> None:
     args = parser.parse_args()
     sampler = SamplerConfig(**{name: getattr(args, name) for name in PRESET})
     args.out.mkdir(parents=True, exist_ok=True)
-    results, timing = {}, {}
+    # the tables cover every benchmark evaluated so far: earlier runs' results, replaced by this run's
+    results, timing = {}, args.out / "timing.json"
+    for variant in COLUMNS:
+        earlier = args.out / "runs" / variant / "results.json"
+        if earlier.is_file():
+            results[variant] = json.loads(earlier.read_text())["results"]
     for variant in args.benchmarks.split(","):
         folder, model = prepare(args.data, variant)
         start = time.perf_counter()
@@ -144,12 +149,15 @@ def main() -> None:
         results[variant] = evaluate(folder, model, args.out / "runs" / variant, config,
                                     progress=lambda phase, done, total: print(f"\r{variant} {phase}: {done}/{total}",
                                                                               end="", flush=True))
-        timing[variant] = time.perf_counter() - start
-        print(f"\n{variant}: {timing[variant] / 60:.1f} min", flush=True)
+        minutes = (time.perf_counter() - start) / 60
+        print(f"\n{variant}: {minutes:.1f} min", flush=True)
         write_tables(args.out, results)
-    (args.out / "timing.json").write_text(json.dumps({"minutes": {k: v / 60 for k, v in timing.items()},
-                                                      "sampler": PRESET | {k: getattr(args, k) for k in PRESET}},
-                                                     indent=1))
+        # wall-clock minutes per invocation, appended: a resumed reproduction adds its parts up
+        log = json.loads(timing.read_text()) if timing.is_file() else []
+        log.append({"benchmark": variant, "likelihoods": args.likelihoods, "jobs": args.jobs,
+                    "episodes": args.episodes, "minutes": round(minutes, 2),
+                    "sampler": {k: getattr(args, k) for k in PRESET}})
+        timing.write_text(json.dumps(log, indent=1))
     print((args.out / "accuracy.md").read_text())
     print((args.out / "adi.md").read_text())
 
