@@ -50,6 +50,11 @@ class DistanceConfig:
             raise MitsubaP3Error(f"distance properties must be a non-empty subset of {PROPERTIES}; "
                                  f"got {tuple(self.properties)}")
 
+    @property
+    def continuous(self) -> tuple:
+        """The continuous properties among the distance's terms."""
+        return tuple(v for v in CONTINUOUS if v in self.properties)
+
 
 @functools.cache
 def _log_kernel_sum():
@@ -150,7 +155,7 @@ def _class_side(class_program: ProtoProgram, config: DistanceConfig) -> dict:
     """The seeded draws x ~ C_k and log C_k(x) per property: shared by every image compared with C_k."""
     rng = np.random.default_rng(config.seed)
     side = {}
-    for name in (v for v in CONTINUOUS if v in config.properties):
+    for name in config.continuous:
         p = class_program.kde(name)
         x = p.resample(config.samples, rng)
         side[name] = (x, p.logpdf(x))
@@ -166,7 +171,7 @@ def _kl_matrix(sides: list[dict], image_programs: list[ProtoProgram], config: Di
     """
     n = config.samples
     terms = {}
-    for name in (v for v in CONTINUOUS if v in config.properties):
+    for name in config.continuous:
         x = np.concatenate([side[name][0] for side in sides])
         log_p = np.stack([side[name][1] for side in sides]).mean(axis=1)
         log_q = np.stack([image.kde(name).logpdf(x).reshape(len(sides), n).mean(axis=1)

@@ -136,7 +136,7 @@ def main() -> None:
     sampler = SamplerConfig(**{name: getattr(args, name) for name in PRESET})
     args.out.mkdir(parents=True, exist_ok=True)
     # the tables cover every benchmark evaluated so far: earlier runs' results, replaced by this run's
-    results, timing = {}, args.out / "timing.json"
+    results, timing_log = {}, args.out / "timing.json"
     for variant in COLUMNS:
         earlier = args.out / "runs" / variant / "results.json"
         if earlier.is_file():
@@ -153,11 +153,11 @@ def main() -> None:
         print(f"\n{variant}: {minutes:.1f} min", flush=True)
         write_tables(args.out, results)
         # wall-clock minutes per invocation, appended: a resumed reproduction adds its parts up
-        log = json.loads(timing.read_text()) if timing.is_file() else []
+        log = json.loads(timing_log.read_text()) if timing_log.is_file() else []
         log.append({"benchmark": variant, "likelihoods": args.likelihoods, "jobs": args.jobs,
                     "episodes": args.episodes, "minutes": round(minutes, 2),
                     "sampler": {k: getattr(args, k) for k in PRESET}})
-        timing.write_text(json.dumps(log, indent=1))
+        timing_log.write_text(json.dumps(log, indent=1))
     print((args.out / "accuracy.md").read_text())
     print((args.out / "adi.md").read_text())
 

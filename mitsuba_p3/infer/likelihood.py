@@ -58,7 +58,7 @@ def observe(observed: np.ndarray, config: LikelihoodConfig, channels: list[Chann
         raise MitsubaP3Error("the np3 likelihood needs the fitted model's selected VGG16 channels")
     observation = {"image": np.asarray(observed, np.float32)}
     if config.kind == "np3":
-        observation["features"] = [np.asarray(f[0]) for f in selected_features(observation["image"][None], channels)]
+        observation["features"] = [np.asarray(f) for f in selected_features(observation["image"][None], channels)]
     return observation
 
 
@@ -67,8 +67,7 @@ def score(observation: dict, renders, config: LikelihoodConfig, channels: list[C
     log_lik = colour_log_likelihood(observation["image"], renders, config.sigma)
     if config.kind == "np3":
         features = selected_features(renders, channels)
-        observed = [f[None] for f in observation["features"]]
-        log_lik = log_lik - config.neural_weight * neural_distance(observed, features)
+        log_lik = log_lik - config.neural_weight * neural_distance(observation["features"], features)
     return log_lik
 
 
@@ -79,7 +78,6 @@ class ImageLikelihood:
         self.config = config
         self.channels = channels or []
         self.observation = observe(observed, config, self.channels)
-        self.observed = self.observation["image"]
 
     def __call__(self, renders):
         """(B, H, W, 3) renders -> (B,) log-likelihoods (JAX)."""
