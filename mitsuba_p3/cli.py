@@ -315,6 +315,8 @@ def evaluate(
     burn_in: int = typer.Option(SamplerConfig.burn_in, help="Burn-in steps after tuning."),
     tune_rounds: int = typer.Option(SamplerConfig.tune_rounds, help="Tuning rounds."),
     tune_steps: int = typer.Option(SamplerConfig.tune_steps, help="Steps per tuning round."),
+    sigma: Optional[float] = typer.Option(None, help="Colour-likelihood sigma (default: the paper's, "
+                                                     "1.0; 0.35 for a dark-fitted model)."),
     renderer: str = typer.Option("mitsuba", help="mitsuba (pure_callback) or jax (native tracer)."),
     seed: int = typer.Option(0, help="Sampler seed."),
 ) -> None:
@@ -328,7 +330,10 @@ def evaluate(
         raise MitsubaP3Error(f"unknown likelihood(s) {unknown or likelihoods!r}; choose from p3, np3")
     if renderer not in ("mitsuba", "jax"):
         raise MitsubaP3Error(f"unknown renderer {renderer!r}; choose mitsuba or jax")
-    config = EvaluationConfig(likelihoods=chosen, renderer=renderer, episodes=episodes, jobs=jobs, dask=dask,
+    if sigma is not None and not sigma > 0:
+        raise MitsubaP3Error(f"--sigma must be positive; got {sigma}")
+    config = EvaluationConfig(likelihoods=chosen, sigma=sigma, renderer=renderer, episodes=episodes, jobs=jobs,
+                              dask=dask,
                               sampler=SamplerConfig(chains=chains, steps=steps, burn_in=burn_in,
                                                     tune_rounds=tune_rounds, tune_steps=tune_steps, seed=seed))
     bar, track = phase_progress_bar("posteriors")

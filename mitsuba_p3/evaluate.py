@@ -52,6 +52,7 @@ class EvaluationError(MitsubaP3Error):
 @dataclass
 class EvaluationConfig:
     likelihoods: tuple = ("p3", "np3")
+    sigma: float | None = None   # colour-likelihood sigma; None: the paper's (1.0; 0.35 for dark)
     renderer: str = "mitsuba"
     sampler: SamplerConfig = field(default_factory=SamplerConfig)
     episodes: int = 100          # per N-way K-shot setting
@@ -64,7 +65,8 @@ class EvaluationConfig:
 
     def cache_key(self) -> dict:
         """The settings a cached posterior depends on."""
-        return {"renderer": self.renderer, "sampler": asdict(self.sampler), "keep_draws": self.keep_draws}
+        return {"renderer": self.renderer, "sampler": asdict(self.sampler), "keep_draws": self.keep_draws,
+                "sigma": self.sigma}
 
 
 # ----------------------------------------------------------------------------- posteriors
@@ -86,8 +88,8 @@ def _atomic_savez(path: Path, **arrays) -> None:
 
 
 def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str, renderer: str,
-                  sampler: dict, keep_draws: int, out: str) -> str:
-    """Sample one test image's posterior and cache what evaluation needs (a picklable job)."""
+                  sampler: dict, keep_draws: int, out: str, sigma: float | None = None) -> str:
+    """Sample one image's posterior and cache what evaluation needs (a picklable job)."""
     from .fit.model import FittedModel
     from .infer.posterior import default_likelihood, infer_image
 
@@ -95,7 +97,7 @@ def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str,
     shot = dataset.shots[index]
     fitted = FittedModel(model_dir)
     start = time.perf_counter()
-    posterior = infer_image(fitted, dataset.image(shot), default_likelihood(fitted, likelihood),
+    posterior = infer_image(fitted, dataset.image(shot), default_likelihood(fitted, likelihood, sigma),
                             SamplerConfig(**sampler), renderer=renderer)
     seconds = time.perf_counter() - start
     estimate = posterior.estimate()
@@ -132,7 +134,7 @@ class CachedPosterior:
                        float(f["seconds"]), float(f["max_r_hat"]), float(f["min_ess"]))
 
 
-def _check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: EvaluationConfig) -> None:
+def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: EvaluationConfig) -> None:
     """Create RUN/run.json, or refuse a folder made with other settings or another data set."""
     record = {"format": RUN_FORMAT, "version": 1, "dataset": str(Path(dataset.root).resolve()),
               "model": str(Path(model_dir).resolve()), **config.cache_key()}
@@ -166,7 +168,7 @@ def compute_posteriors(dataset: Dataset, model_dir: Path, run_dir: Path, config:
         return
     jobs = (delayed(posterior_job)(str(dataset.root), str(model_dir), index, likelihood, config.renderer,
                                    asdict(config.sampler), config.keep_draws,
-                                   str(posterior_path(run_dir, likelihood, index)))
+                                   str(posterior_path(run_dir, likelihood, index)), config.sigma)
             for index, likelihood in todo)
     with ExitStack() as stack:
         if config.dask:
@@ -325,7 +327,7 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
     config = config or EvaluationConfig()
     dataset = load_dataset(dataset_dir)
     run_dir = Path(run_dir)
-    _check_run(run_dir, dataset, Path(model_dir), config)
+    check_run(run_dir, dataset, Path(model_dir), config)
     compute_posteriors(dataset, Path(model_dir), run_dir, config,
                        (lambda done, total: progress("posteriors", done, total)) if progress else None)
     n_classes = len(dataset.classes("test"))

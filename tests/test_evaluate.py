@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
-from mitsuba_p3.evaluate import EvaluationConfig, EvaluationError, compute_posteriors, evaluate, posterior_path
+from mitsuba_p3.evaluate import (EvaluationConfig, EvaluationError, check_run, compute_posteriors, evaluate,
+                                 posterior_path)
 from mitsuba_p3.fit.model import fit_model
 from mitsuba_p3.fit.scene_opt import SceneOptConfig
 from mitsuba_p3.infer.mcmc import SamplerConfig
@@ -84,11 +85,31 @@ def test_posteriors_on_a_dask_cluster(bench, tmp_path):
 
 def test_run_folder_refuses_other_settings(bench, tmp_path):
     config = EvaluationConfig(likelihoods=("p3",), sampler=TINY, episodes=2)
-    from mitsuba_p3.evaluate import _check_run
-
     dataset = load_dataset(bench / "data")
-    _check_run(tmp_path, dataset, bench / "model", config)
-    _check_run(tmp_path, dataset, bench / "model", config)                   # same settings: fine
+    check_run(tmp_path, dataset, bench / "model", config)
+    check_run(tmp_path, dataset, bench / "model", config)                   # same settings: fine
+    with pytest.raises(EvaluationError, match="sigma"):                     # another likelihood sigma
+        check_run(tmp_path, dataset, bench / "model", EvaluationConfig(likelihoods=("p3",), sampler=TINY, sigma=0.1))
     changed = EvaluationConfig(likelihoods=("p3",), sampler=SamplerConfig(**{**asdict(TINY), "steps": 31}))
     with pytest.raises(EvaluationError, match="other settings"):
         evaluate(bench / "data", bench / "model", tmp_path, changed)
+
+
+def test_sigma_reaches_the_cached_posteriors(bench, tmp_path):
+    """A smaller colour sigma sharpens the likelihood, so the same image's colour posterior narrows."""
+    dataset = load_dataset(bench / "data")
+    shot = dataset.split("test")[0].index
+    spreads = {}
+    for sigma in (1.0, 0.05):
+        config = EvaluationConfig(likelihoods=("p3",), sampler=TINY, sigma=sigma)
+        compute_posteriors(dataset, bench / "model", tmp_path / f"s{sigma}", config, shots=[shot])
+        with np.load(posterior_path(tmp_path / f"s{sigma}", "p3", shot)) as f:
+            spreads[sigma] = f["sample_colour"].std(axis=0).mean()
+    assert spreads[0.05] < 0.5 * spreads[1.0]
+
+
+def test_cli_refuses_a_bad_sigma(bench, tmp_path):
+    result = subprocess.run([sys.executable, "-m", "mitsuba_p3.cli", "evaluate", str(bench / "data"), "--model",
+                             str(bench / "model"), "--out", str(tmp_path), "--sigma", "0"],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode != 0 and "sigma" in result.stderr

@@ -54,6 +54,13 @@ def test_colour_likelihood_is_the_truncated_normal(observed):
         np.testing.assert_allclose(np.asarray(colour_log_likelihood(observed, renders, sigma)), expected, rtol=1e-5)
 
 
+def test_likelihood_config_rejects_bad_values():
+    with pytest.raises(MitsubaP3Error, match="sigma"):
+        LikelihoodConfig("p3", sigma=0.0)
+    with pytest.raises(MitsubaP3Error, match="p3 or np3"):
+        LikelihoodConfig("p4")
+
+
 def test_neural_term_lowers_the_likelihood_of_a_wrong_render(fitted, observed):
     p3 = ImageLikelihood(observed, LikelihoodConfig("p3"))
     np3 = ImageLikelihood(observed, LikelihoodConfig("np3"), fitted.channels)

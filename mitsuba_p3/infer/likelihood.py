@@ -33,6 +33,10 @@ class LikelihoodConfig:
             from ..errors import MitsubaP3Error
 
             raise MitsubaP3Error(f"unknown likelihood {self.kind!r}; choose p3 or np3")
+        if not self.sigma > 0:
+            from ..errors import MitsubaP3Error
+
+            raise MitsubaP3Error(f"the colour likelihood's sigma must be positive; got {self.sigma}")
 
 
 def colour_log_likelihood(observed, renders, sigma: float):
