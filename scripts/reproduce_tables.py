@@ -15,7 +15,11 @@ Baselines evaluated into ``runs/V`` beforehand (``mitsuba-p3 baseline evaluate
 TRAINED data/V --out results/runs/V``) appear in the accuracy table too.
 
     python scripts/reproduce_tables.py [--data data] [--out results] [--episodes 100] [--jobs 1]
-        [--chains 8 --steps 200 ...] [--benchmarks fsclvr,dark,room,ood] [--likelihoods p3,np3]
+        [--chains 8 --steps 200 ...] [--benchmarks fsclvr,dark,room,ood] [--likelihoods p3,np3] [--sigma S]
+
+``--sigma`` replaces the paper's colour-likelihood sigma (choose it on the train
+classes with ``scripts/select_sigma.py``); such runs go to ``runs/V-sigmaS`` and
+get their own rows in the tables.
 
 The sampler settings default to a lighter preset than ``mitsuba-p3 infer`` (see
 ``PRESET``): 840 posteriors (420 images x P3/NP3) at the inference defaults
@@ -75,51 +79,86 @@ def cells(result: dict) -> str:
     return "/".join(f"{100 * result['accuracy'][n]['mean']:.1f}" if n in result["accuracy"] else "-" for n in names)
 
 
-def write_tables(out: Path, results: dict) -> None:
-    header = ["model", "source"] + [TITLES[c] for c in COLUMNS]
-    rows = []
-    for model in ("P3", "NP3"):
-        rows.append([model, "this project"] + [cells(results[c][model.lower()]) if model.lower() in results.get(c, {})
-                                               else "-" for c in COLUMNS])
+def run_name(variant: str, sigma: float | None) -> str:
+    """The run folder of a benchmark: ``V`` at the paper's sigma, ``V-sigmaS`` at another."""
+    return variant if sigma is None else f"{variant}-sigma{sigma:g}"
+
+
+def parse_run_name(name: str) -> tuple[str, float | None] | None:
+    """(benchmark, sigma) of a run folder name, or None for a folder this script did not make."""
+    variant, _, rest = name.partition("-sigma")
+    if variant not in COLUMNS:
+        return None
+    try:
+        return variant, (float(rest) if rest else None)
+    except ValueError:
+        return None
+
+
+def label(likelihood: str, sigma: float | None) -> str:
+    return likelihood.upper() + ("" if sigma is None else f" (sigma {sigma:g})")
+
+
+def collect(out: Path) -> dict:
+    """Every evaluated run under ``out/runs``: {(benchmark, sigma): {likelihood: result}}."""
     found = {}
-    for c in results:
-        for baseline in load_baselines(out / "runs" / c):
-            found.setdefault(baseline["model"], {})[c] = baseline
+    for path in sorted((out / "runs").glob("*/results.json")):
+        key = parse_run_name(path.parent.name)
+        if key:
+            found[key] = json.loads(path.read_text())["results"]
+    return found
+
+
+def write_tables(out: Path, results: dict) -> None:
+    """The accuracy and ADI tables in the paper's layout, from ``collect``'s runs."""
+    sigmas = sorted({s for _, s in results}, key=lambda s: (s is not None, s or 0))
+    models = [(m, s) for s in sigmas for m in ("p3", "np3") if any(m in r for (_, t), r in results.items() if t == s)]
+    header = ["model", "source"] + [TITLES[c] for c in COLUMNS]
+    rows = [[label(m, s), "this project"] + [cells(results[(c, s)][m]) if m in results.get((c, s), {}) else "-"
+                                             for c in COLUMNS] for m, s in models]
+    found = {}
+    for c, s in results:
+        if s is None:
+            for baseline in load_baselines(out / "runs" / c):
+                found.setdefault(baseline["model"], {})[c] = baseline
     for model, per_benchmark in sorted(found.items()):
         rows.append([model, "this project"] + [cells(per_benchmark[c]) if c in per_benchmark else "-"
                                                for c in COLUMNS])
     for model, numbers in PAPER_ACCURACY.items():
         rows.append([model, "paper"] + [numbers[c] for c in COLUMNS])
     note = ("\nCells: 5-way 1-shot / 5-way 5-shot / 10-way 1-shot / 10-way 5-shot accuracy (%). "
-            "OOD has 10 test classes. The paper's numbers are on its own data sets: compare in spirit.\n")
+            "OOD has 10 test classes. Rows without a sigma use the paper's colour-likelihood sigma (1.0; 0.35 "
+            "for DARK); sigma values were chosen on train classes (scripts/select_sigma.py). "
+            "The paper's numbers are on its own data sets: compare in spirit.\n")
     (out / "accuracy.md").write_text(markdown_table(header, rows) + note)
     with open(out / "accuracy.csv", "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["benchmark", "model", "setting", "accuracy", "half_width_95", "ece", "paper"])
+        writer.writerow(["benchmark", "model", "sigma", "setting", "accuracy", "half_width_95", "ece", "paper"])
         for c in COLUMNS:
-            if c not in results:
-                continue
-            for model in (m for m in ("p3", "np3") if m in results[c]):
-                paper = PAPER_ACCURACY[model.upper()][c].split("/")
+            for m, s in models:
+                if m not in results.get((c, s), {}):
+                    continue
+                paper = PAPER_ACCURACY[m.upper()][c].split("/")
                 for i, (n, k) in enumerate(SETTINGS):
-                    a = results[c][model]["accuracy"].get(f"{n}-way {k}-shot")
+                    a = results[(c, s)][m]["accuracy"].get(f"{n}-way {k}-shot")
                     if a:
-                        writer.writerow([c, model, f"{n}-way {k}-shot", a["mean"], a["half_width"], a["ece"],
-                                         float(paper[i]) / 100])
-    header = ["benchmark", "P3 mean ADI (m)", "NP3 mean ADI (m)", "paper P3 / NP3"]
-    adi = lambda c, m: f"{results[c][m]['adi']['mean']:.4f}" if m in results[c] else "-"  # noqa: E731
-    rows = [[TITLES[c], adi(c, "p3"), adi(c, "np3"), f"{PAPER_ADI[c][0]:.4f} / {PAPER_ADI[c][1]:.4f}"]
-            for c in COLUMNS if c in results]
+                        writer.writerow([c, m, "paper" if s is None else s, f"{n}-way {k}-shot", a["mean"],
+                                         a["half_width"], a["ece"], float(paper[i]) / 100])
+    header = ["benchmark"] + [f"{label(m, s)} mean ADI (m)" for m, s in models] + ["paper P3 / NP3"]
+    adi = lambda c, m, s: (f"{results[(c, s)][m]['adi']['mean']:.4f}"  # noqa: E731
+                           if m in results.get((c, s), {}) else "-")
+    rows = [[TITLES[c]] + [adi(c, m, s) for m, s in models] + [f"{PAPER_ADI[c][0]:.4f} / {PAPER_ADI[c][1]:.4f}"]
+            for c in COLUMNS if any(v == c for v, _ in results)]
     (out / "adi.md").write_text(markdown_table(header, rows))
     with open(out / "adi.csv", "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["benchmark", "model", "mean_adi_m", "median_adi_m", "paper_mean_adi_m"])
+        writer.writerow(["benchmark", "model", "sigma", "mean_adi_m", "median_adi_m", "paper_mean_adi_m"])
         for c in COLUMNS:
-            if c in results:
-                for i, model in enumerate(("p3", "np3")):
-                    if model in results[c]:
-                        a = results[c][model]["adi"]
-                        writer.writerow([c, model, a["mean"], a["median"], PAPER_ADI[c][i]])
+            for m, s in models:
+                if m in results.get((c, s), {}):
+                    a = results[(c, s)][m]["adi"]
+                    writer.writerow([c, m, "paper" if s is None else s, a["mean"], a["median"],
+                                     PAPER_ADI[c][("p3", "np3").index(m)]])
 
 
 def main() -> None:
@@ -132,29 +171,28 @@ def main() -> None:
     parser.add_argument("--likelihoods", default="p3,np3", help="comma-separated: p3, np3 or both")
     for name, value in PRESET.items():
         parser.add_argument("--" + name.replace("_", "-"), type=int, default=value)
+    parser.add_argument("--sigma", type=float, default=None,
+                        help="colour-likelihood sigma (default: the paper's); runs go to runs/V-sigmaS")
     args = parser.parse_args()
+    if args.sigma is not None and not args.sigma > 0:
+        parser.error("--sigma must be positive")
     sampler = SamplerConfig(**{name: getattr(args, name) for name in PRESET})
     args.out.mkdir(parents=True, exist_ok=True)
-    # the tables cover every benchmark evaluated so far: earlier runs' results, replaced by this run's
-    results, timing_log = {}, args.out / "timing.json"
-    for variant in COLUMNS:
-        earlier = args.out / "runs" / variant / "results.json"
-        if earlier.is_file():
-            results[variant] = json.loads(earlier.read_text())["results"]
+    timing_log = args.out / "timing.json"
     for variant in args.benchmarks.split(","):
         folder, model = prepare(args.data, variant)
         start = time.perf_counter()
-        config = EvaluationConfig(likelihoods=tuple(args.likelihoods.split(",")), sampler=sampler,
+        config = EvaluationConfig(likelihoods=tuple(args.likelihoods.split(",")), sigma=args.sigma, sampler=sampler,
                                   episodes=args.episodes, jobs=args.jobs)
-        results[variant] = evaluate(folder, model, args.out / "runs" / variant, config,
-                                    progress=lambda phase, done, total: print(f"\r{variant} {phase}: {done}/{total}",
-                                                                              end="", flush=True))
+        evaluate(folder, model, args.out / "runs" / run_name(variant, args.sigma), config,
+                 progress=lambda phase, done, total: print(f"\r{variant} {phase}: {done}/{total}", end="", flush=True))
         minutes = (time.perf_counter() - start) / 60
         print(f"\n{variant}: {minutes:.1f} min", flush=True)
-        write_tables(args.out, results)
+        # the tables cover every benchmark and sigma evaluated so far, this run's included
+        write_tables(args.out, collect(args.out))
         # wall-clock minutes per invocation, appended: a resumed reproduction adds its parts up
         log = json.loads(timing_log.read_text()) if timing_log.is_file() else []
-        log.append({"benchmark": variant, "likelihoods": args.likelihoods, "jobs": args.jobs,
+        log.append({"benchmark": variant, "likelihoods": args.likelihoods, "sigma": args.sigma, "jobs": args.jobs,
                     "episodes": args.episodes, "minutes": round(minutes, 2),
                     "sampler": {k: getattr(args, k) for k in PRESET}})
         timing_log.write_text(json.dumps(log, indent=1))
