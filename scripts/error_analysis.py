@@ -1,0 +1,69 @@
+"""Which class attributes P3/NP3 confuse: a run's misclassifications, grouped.
+
+A benchmark class is (shape, colour, material, size). For every wrong
+prediction in ``RUN/predictions.csv`` this lists the attributes in which the
+true and the predicted class differ, and the most frequent (true -> predicted)
+pairs, so one sees at a glance whether errors come from shape, colour or
+material. The episodes are re-drawn from the data set exactly as evaluation drew
+them (same seed), so only the run folder and the data set are needed.
+
+    python scripts/error_analysis.py results/runs/fsclvr data/fsclvr [--model p3] [--top 15]
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import csv
+import json
+from pathlib import Path
+
+from mitsuba_p3.benchmarks.dataset import load_dataset
+from mitsuba_p3.benchmarks.episodes import sample_episodes
+from mitsuba_p3.evaluate import EvaluationConfig
+
+ATTRIBUTES = ("shape", "colour", "material", "size")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run", type=Path)
+    parser.add_argument("dataset", type=Path)
+    parser.add_argument("--model", default="p3")
+    parser.add_argument("--top", type=int, default=15)
+    args = parser.parse_args()
+
+    dataset = load_dataset(args.dataset)
+    labels = dataset.class_labels
+    results = json.loads((args.run / "results.json").read_text())["results"][args.model]
+    rows = [r for r in csv.DictReader(open(args.run / "predictions.csv")) if r["model"] == args.model]
+    if not rows:
+        parser.error(f"{args.run / 'predictions.csv'} has no predictions of model {args.model!r}")
+    episodes_per_setting = next(iter(results["accuracy"].values()))["episodes"]
+    defaults = EvaluationConfig()
+    episodes, by_attributes, pairs, total = {}, collections.Counter(), collections.Counter(), 0
+    for row in rows:
+        key = int(row["n_way"]), int(row["k_shot"])
+        if key not in episodes:
+            episodes[key] = sample_episodes(dataset, *key, episodes_per_setting, defaults.episode_seed,
+                                            defaults.queries_per_class)
+        episode = episodes[key][int(row["episode"])]
+        truth, predicted = episode.classes[int(row["truth"])], episode.classes[int(row["predicted"])]
+        if dataset.shots[int(row["query"])].cls.name != truth:
+            parser.error(f"{args.run} was not scored on {args.dataset}'s default episodes (query {row['query']})")
+        total += 1
+        if truth != predicted:
+            differ = [a for a in ATTRIBUTES if getattr(labels[truth], a) != getattr(labels[predicted], a)]
+            by_attributes["+".join(differ)] += 1
+            pairs[(truth, predicted)] += 1
+    wrong = sum(by_attributes.values())
+    print(f"{args.run} ({args.model}): {wrong} of {total} predictions wrong, all settings together\n")
+    print("| true and predicted class differ in | errors | share |\n|---|---|---|")
+    for differ, count in by_attributes.most_common():
+        print(f"| {differ} | {count} | {100 * count / wrong:.0f}% |")
+    print("\n| true class | predicted class | errors |\n|---|---|---|")
+    for (truth, predicted), count in pairs.most_common(args.top):
+        print(f"| {truth} | {predicted} | {count} |")
+
+
+if __name__ == "__main__":
+    main()
