@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -77,15 +76,14 @@ def main() -> None:
         config = EvaluationConfig(likelihoods=("p3",), sigma=sigma, jobs=args.jobs,
                                   sampler=SamplerConfig(**PRESET, seed=args.seed))
         check_run(run_dir, dataset, args.model, config)
-        start = time.perf_counter()
         compute_posteriors(dataset, args.model, run_dir, config, shots=[i for v in shots.values() for i in v],
                            progress=lambda done, total: print(f"sigma {sigma:g}: posteriors {done}/{total}",
                                                               flush=True))
-        minutes = (time.perf_counter() - start) / 60
         cached = {c: [CachedPosterior.load(posterior_path(run_dir, "p3", i), config.distance.max_points)
                       for i in v] for c, v in shots.items()}
-        row = {"sigma": sigma, "minutes": round(minutes, 1),
-               "median_max_r_hat": float(np.median([p.max_r_hat for v in cached.values() for p in v]))}
+        every = [p for v in cached.values() for p in v]
+        row = {"sigma": sigma, "seconds_per_image": float(np.median([p.seconds for p in every])),
+               "median_max_r_hat": float(np.median([p.max_r_hat for p in every]))}
         for n_way in WAYS:
             programs = {c: [p.program for p in v] for c, v in cached.items()}
             row[f"{n_way}-way 1-shot"] = one_shot_accuracy(programs, n_way, args.episodes, args.seed,

@@ -83,6 +83,20 @@ def test_posteriors_on_a_dask_cluster(bench, tmp_path):
             assert f["sample_colour"].shape[1] == 3 and f["sample_class"].ndim == 1
 
 
+def test_parallel_workers_share_the_cores(bench, tmp_path):
+    """With --jobs 2 every worker renders with its share of the cores, not all of them."""
+    from mitsuba_p3.evaluate import worker_threads
+
+    assert worker_threads(1) is None
+    dataset = load_dataset(bench / "data")
+    shots = [s.index for s in dataset.split("test")[:2]]
+    compute_posteriors(dataset, bench / "model", tmp_path, EvaluationConfig(likelihoods=("p3",), sampler=TINY, jobs=2),
+                       shots=shots)
+    for index in shots:
+        with np.load(posterior_path(tmp_path, "p3", index)) as f:
+            assert int(f["render_threads"]) == worker_threads(2)
+
+
 def test_run_folder_refuses_other_settings(bench, tmp_path):
     config = EvaluationConfig(likelihoods=("p3",), sampler=TINY, episodes=2)
     dataset = load_dataset(bench / "data")
