@@ -14,7 +14,7 @@ per-image posteriors already on disk are reused. Writes, in ``--out``:
 Baselines evaluated into ``runs/V`` beforehand (``mitsuba-p3 baseline evaluate
 TRAINED data/V --out results/runs/V``) appear in the accuracy table too.
 
-    python scripts/reproduce_tables.py [--data data] [--out results] [--episodes 100] [--jobs 1]
+    python scripts/reproduce_tables.py [--data data] [--out results] [--episodes 100] [--jobs CORES]
         [--chains 8 --steps 200 ...] [--benchmarks fsclvr,dark,room,ood] [--likelihoods p3,np3] [--sigma S]
 
 ``--sigma`` replaces the paper's colour-likelihood sigma (choose it on the train
@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import os
 import subprocess
 import sys
 import time
@@ -167,7 +168,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("results"))
     parser.add_argument("--benchmarks", default=",".join(("fsclvr", "dark", "room", "ood")))
     parser.add_argument("--episodes", type=int, default=100)
-    parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--jobs", type=int, default=len(os.sched_getaffinity(0)),
+                        help="parallel posterior workers; they share the cores (default: one per core)")
     parser.add_argument("--likelihoods", default="p3,np3", help="comma-separated: p3, np3 or both")
     for name, value in PRESET.items():
         parser.add_argument("--" + name.replace("_", "-"), type=int, default=value)

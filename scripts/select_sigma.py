@@ -12,13 +12,14 @@ classes: one cached shot of each chosen class is the support, another the query.
 Writes ``OUT/sigma.md``, ``OUT/sigma.csv`` and ``OUT/sigma.png``.
 
     python scripts/select_sigma.py data/fsclvr data/models/fsclvr results/sigma/fsclvr \\
-        [--sigmas 1,0.3,0.1,0.05] [--shots 2] [--episodes 200] [--jobs 2]
+        [--sigmas 1,0.3,0.1,0.05] [--shots 2] [--episodes 200] [--jobs CORES]
 """
 from __future__ import annotations
 
 import argparse
 import csv
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -56,7 +57,8 @@ def main() -> None:
     parser.add_argument("--sigmas", default="1,0.3,0.1,0.05")
     parser.add_argument("--shots", type=int, default=2, help="cached shots per train class (>= 2)")
     parser.add_argument("--episodes", type=int, default=200)
-    parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--jobs", type=int, default=len(os.sched_getaffinity(0)),
+                        help="parallel posterior workers; they share the cores (default: one per core)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     if args.shots < 2:
