@@ -181,6 +181,7 @@ def main() -> None:
     sampler = SamplerConfig(**{name: getattr(args, name) for name in PRESET})
     args.out.mkdir(parents=True, exist_ok=True)
     timing_log = args.out / "timing.json"
+    started, total = time.strftime("%Y-%m-%dT%H:%M:%S"), 0.0
     for variant in args.benchmarks.split(","):
         folder, model = prepare(args.data, variant)
         start = time.perf_counter()
@@ -189,17 +190,19 @@ def main() -> None:
         evaluate(folder, model, args.out / "runs" / run_name(variant, args.sigma), config,
                  progress=lambda phase, done, total: print(f"\r{variant} {phase}: {done}/{total}", end="", flush=True))
         minutes = (time.perf_counter() - start) / 60
+        total += minutes
         print(f"\n{variant}: {minutes:.1f} min", flush=True)
         # the tables cover every benchmark and sigma evaluated so far, this run's included
         write_tables(args.out, collect(args.out))
         # wall-clock minutes per invocation, appended: a resumed reproduction adds its parts up
         log = json.loads(timing_log.read_text()) if timing_log.is_file() else []
-        log.append({"benchmark": variant, "likelihoods": args.likelihoods, "sigma": args.sigma, "jobs": args.jobs,
+        log.append({"invocation": started, "benchmark": variant, "likelihoods": args.likelihoods, "sigma": args.sigma, "jobs": args.jobs,
                     "episodes": args.episodes, "minutes": round(minutes, 2),
                     "sampler": {k: getattr(args, k) for k in PRESET}})
         timing_log.write_text(json.dumps(log, indent=1))
     print((args.out / "accuracy.md").read_text())
     print((args.out / "adi.md").read_text())
+    print(f"posteriors and episodes of {args.benchmarks}: {total:.1f} min (benchmark generation and fits excluded)")
 
 
 if __name__ == "__main__":
