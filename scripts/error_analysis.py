@@ -7,7 +7,7 @@ pairs, so one sees at a glance whether errors come from shape, colour or
 material. The episodes are re-drawn from the data set exactly as evaluation drew
 them (same seed), so only the run folder and the data set are needed.
 
-    python scripts/error_analysis.py results/runs/fsclvr data/fsclvr [--model p3] [--top 15]
+    python scripts/error_analysis.py data/fsclvr results/runs/fsclvr [--likelihood p3] [--top 15]
 """
 from __future__ import annotations
 
@@ -26,18 +26,18 @@ ATTRIBUTES = ("shape", "colour", "material", "size")
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("run", type=Path)
     parser.add_argument("dataset", type=Path)
-    parser.add_argument("--model", default="p3")
+    parser.add_argument("run", type=Path)
+    parser.add_argument("--likelihood", default="p3")
     parser.add_argument("--top", type=int, default=15)
     args = parser.parse_args()
 
     dataset = load_dataset(args.dataset)
     labels = dataset.class_labels
-    results = json.loads((args.run / "results.json").read_text())["results"][args.model]
-    rows = [r for r in csv.DictReader(open(args.run / "predictions.csv")) if r["model"] == args.model]
+    results = json.loads((args.run / "results.json").read_text())["results"][args.likelihood]
+    rows = [r for r in csv.DictReader(open(args.run / "predictions.csv")) if r["model"] == args.likelihood]
     if not rows:
-        parser.error(f"{args.run / 'predictions.csv'} has no predictions of model {args.model!r}")
+        parser.error(f"{args.run / 'predictions.csv'} has no predictions of likelihood {args.likelihood!r}")
     episodes_per_setting = next(iter(results["accuracy"].values()))["episodes"]
     defaults = EvaluationConfig()
     episodes, by_attributes, pairs, total = {}, collections.Counter(), collections.Counter(), 0
@@ -56,7 +56,7 @@ def main() -> None:
             by_attributes["+".join(differ)] += 1
             pairs[(truth, predicted)] += 1
     wrong = sum(by_attributes.values())
-    print(f"{args.run} ({args.model}): {wrong} of {total} predictions wrong, all settings together\n")
+    print(f"{args.run} ({args.likelihood}): {wrong} of {total} predictions wrong, all settings together\n")
     print("| true and predicted class differ in | errors | share |\n|---|---|---|")
     for differ, count in by_attributes.most_common():
         print(f"| {differ} | {count} | {100 * count / wrong:.0f}% |")
