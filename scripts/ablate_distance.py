@@ -6,6 +6,7 @@ property subsets: all of them (the paper's distance), all but one, and one
 alone. Prints a markdown table of accuracies on the run's own episodes.
 
     python scripts/ablate_distance.py data/fsclvr results/runs/fsclvr [--likelihood p3] [--episodes 100]
+        [--subsets colour+class,colour]
 """
 from __future__ import annotations
 
@@ -27,14 +28,22 @@ def main() -> None:
     parser.add_argument("run", type=Path)
     parser.add_argument("--likelihood", default="p3")
     parser.add_argument("--episodes", type=int, default=100)
+    parser.add_argument("--subsets", default=None,
+                        help="only these subsets, e.g. colour+class,colour (default: all, all but one, one alone)")
     args = parser.parse_args()
     dataset = load_dataset(args.dataset)
     distance = DistanceConfig()
     cached = {shot.index: CachedPosterior.load(posterior_path(args.run, args.likelihood, shot.index),
                                                distance.max_points) for shot in dataset.split("test")}
-    subsets = [("all (paper)", PROPERTIES)]
-    subsets += [(f"all but {p}", tuple(q for q in PROPERTIES if q != p)) for p in PROPERTIES]
-    subsets += [(f"{p} only", (p,)) for p in PROPERTIES]
+    if args.subsets:
+        subsets = [(subset, tuple(subset.split("+"))) for subset in args.subsets.split(",")]
+        for label, properties in subsets:
+            if not set(properties) <= set(PROPERTIES):
+                parser.error(f"unknown property in {label!r}; choose from {', '.join(PROPERTIES)}")
+    else:
+        subsets = [("all (paper)", PROPERTIES)]
+        subsets += [(f"all but {p}", tuple(q for q in PROPERTIES if q != p)) for p in PROPERTIES]
+        subsets += [(f"{p} only", (p,)) for p in PROPERTIES]
     fewest = min(len(dataset.shots_of(c)) for c in dataset.classes("test"))
     settings = [(n, k) for n, k in SETTINGS if n <= len(dataset.classes("test")) and k + 1 <= fewest]
     rows = []

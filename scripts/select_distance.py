@@ -1,0 +1,61 @@
+"""Choose the protoprogram distance's terms on a benchmark's *train* classes.
+
+Re-scores the cached train-class posteriors of ``scripts/select_sigma.py`` (one
+sigma's folder, 2+ shots per class) on N-way 1-shot episodes among the train
+classes, with the distance restricted to each given subset of properties. No
+test image is used, so the chosen subset can then be evaluated on the test
+split (``scripts/ablate_distance.py --subsets``) without peeking.
+
+    python scripts/select_distance.py data/fsclvr results/sigma/fsclvr/sigma-1 \\
+        [--subsets all,colour,colour+class,colour+scale+class] [--episodes 200]
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+from dataclasses import replace
+from pathlib import Path
+
+from mitsuba_p3.benchmarks.dataset import load_dataset
+from mitsuba_p3.concepts import PROPERTIES, DistanceConfig
+from mitsuba_p3.evaluate import CachedPosterior, markdown_table, posterior_path
+
+_spec = importlib.util.spec_from_file_location("select_sigma", Path(__file__).with_name("select_sigma.py"))
+select_sigma = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(select_sigma)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("dataset", type=Path)
+    parser.add_argument("run", type=Path, help="a select_sigma.py folder, e.g. results/sigma/fsclvr/sigma-1")
+    parser.add_argument("--subsets", default="all,colour,colour+class,colour+scale+class,"
+                                             "scale+colour+ambient+diffuse+class")
+    parser.add_argument("--likelihood", default="p3")
+    parser.add_argument("--episodes", type=int, default=200)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    subsets = [(s, PROPERTIES if s == "all" else tuple(s.split("+"))) for s in args.subsets.split(",")]
+    for label, properties in subsets:
+        if not set(properties) <= set(PROPERTIES):
+            parser.error(f"unknown property in {label!r}; choose from {', '.join(PROPERTIES)} or 'all'")
+    dataset = load_dataset(args.dataset)
+    programs = {}
+    for name in dataset.classes("train"):
+        paths = [posterior_path(args.run, args.likelihood, s.index) for s in dataset.shots_of(name)]
+        programs[name] = [CachedPosterior.load(p, DistanceConfig.max_points).program for p in paths if p.exists()]
+    if min(len(v) for v in programs.values()) < 2:
+        parser.error(f"{args.run} needs at least 2 cached posteriors of every train class (select_sigma.py)")
+    rows = []
+    for label, properties in subsets:
+        config = replace(DistanceConfig(), properties=properties)
+        cells = [f"{100 * select_sigma.one_shot_accuracy(programs, n, args.episodes, args.seed, config):.1f}"
+                 for n in select_sigma.WAYS]
+        rows.append([label] + cells)
+        print(f"{label}: {' / '.join(cells)}", flush=True)
+    print()
+    print(markdown_table(["distance terms"] + [f"{n}-way 1-shot (train classes)" for n in select_sigma.WAYS], rows))
+
+
+if __name__ == "__main__":
+    main()
