@@ -56,6 +56,14 @@ class DistanceConfig:
         return tuple(v for v in CONTINUOUS if v in self.properties)
 
 
+def parse_properties(text: str) -> tuple:
+    """Distance terms from text: ``all`` or properties joined by ``+`` (``colour+class``)."""
+    properties = PROPERTIES if text.strip() == "all" else tuple(p.strip() for p in text.split("+"))
+    if not properties or not set(properties) <= set(PROPERTIES):
+        raise MitsubaP3Error(f"unknown distance terms {text!r}; choose 'all' or some of {'+'.join(PROPERTIES)}")
+    return properties
+
+
 @functools.cache
 def _log_kernel_sum():
     """Jitted log sum_j exp(-|z_i - p_j|^2 / 2) for whitened queries z (m, d) and points p (n, d)."""

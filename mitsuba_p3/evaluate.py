@@ -268,6 +268,24 @@ def classify_episodes(dataset: Dataset, cached: dict[int, CachedPosterior], n_wa
     return rows
 
 
+def one_shot_accuracy(programs: dict[str, list[ProtoProgram]], n_way: int, episodes: int, seed: int,
+                      config: DistanceConfig) -> float:
+    """Mean accuracy of seeded N-way 1-shot episodes over the classes of ``programs`` (class -> its
+    shots' programs, 2 or more): per chosen class one shot is the support, another the query. For
+    choices made on train classes (``scripts/select_sigma.py``, ``scripts/select_distance.py``)."""
+    rng = np.random.default_rng([seed, n_way])
+    names = sorted(programs)
+    correct = []
+    for _ in range(episodes):
+        chosen = [names[i] for i in rng.choice(len(names), size=n_way, replace=False)]
+        pairs = [rng.choice(len(programs[c]), size=2, replace=False) for c in chosen]
+        support = [programs[c][s] for c, (s, _) in zip(chosen, pairs)]
+        queries = [programs[c][q] for c, (_, q) in zip(chosen, pairs)]
+        probabilities = classify_many(support, queries, config)
+        correct += list(np.argmax(probabilities, axis=1) == np.arange(n_way))
+    return float(np.mean(correct))
+
+
 def pose_errors(dataset: Dataset, cached: dict[int, CachedPosterior]) -> list[dict]:
     from .pose import adi
 

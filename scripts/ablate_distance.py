@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
-from mitsuba_p3.concepts import PROPERTIES, DistanceConfig
+from mitsuba_p3.concepts import PROPERTIES, DistanceConfig, parse_properties
+from mitsuba_p3.errors import MitsubaP3Error
 from mitsuba_p3.evaluate import (SETTINGS, CachedPosterior, EvaluationConfig, classify_episodes, markdown_table,
                                  posterior_path)
 
@@ -36,10 +37,10 @@ def main() -> None:
     cached = {shot.index: CachedPosterior.load(posterior_path(args.run, args.likelihood, shot.index),
                                                distance.max_points) for shot in dataset.split("test")}
     if args.subsets:
-        subsets = [(subset, tuple(subset.split("+"))) for subset in args.subsets.split(",")]
-        for label, properties in subsets:
-            if not set(properties) <= set(PROPERTIES):
-                parser.error(f"unknown property in {label!r}; choose from {', '.join(PROPERTIES)}")
+        try:
+            subsets = [(subset, parse_properties(subset)) for subset in args.subsets.split(",")]
+        except MitsubaP3Error as error:
+            parser.error(str(error))
     else:
         subsets = [("all (paper)", PROPERTIES)]
         subsets += [(f"all but {p}", tuple(q for q in PROPERTIES if q != p)) for p in PROPERTIES]

@@ -4,8 +4,8 @@ A benchmark class is (shape, colour, material, size). For every wrong
 prediction in ``RUN/predictions.csv`` this lists the attributes in which the
 true and the predicted class differ, and the most frequent (true -> predicted)
 pairs, so one sees at a glance whether errors come from shape, colour or
-material. The episodes are re-drawn from the data set exactly as evaluation drew
-them (same seed), so only the run folder and the data set are needed.
+material. The episodes are re-drawn from the data set as evaluation draws them
+by default (seed 0, one query per class), and every query is checked against them.
 
     python scripts/error_analysis.py data/fsclvr results/runs/fsclvr [--likelihood p3] [--top 15]
 """

@@ -12,17 +12,15 @@ split (``scripts/ablate_distance.py --subsets``) without peeking.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 from dataclasses import replace
 from pathlib import Path
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
-from mitsuba_p3.concepts import PROPERTIES, DistanceConfig
-from mitsuba_p3.evaluate import CachedPosterior, markdown_table, posterior_path
+from mitsuba_p3.concepts import DistanceConfig, parse_properties
+from mitsuba_p3.errors import MitsubaP3Error
+from mitsuba_p3.evaluate import CachedPosterior, markdown_table, one_shot_accuracy, posterior_path
 
-_spec = importlib.util.spec_from_file_location("select_sigma", Path(__file__).with_name("select_sigma.py"))
-select_sigma = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(select_sigma)
+WAYS = (5, 10)
 
 
 def main() -> None:
@@ -35,10 +33,10 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    subsets = [(s, PROPERTIES if s == "all" else tuple(s.split("+"))) for s in args.subsets.split(",")]
-    for label, properties in subsets:
-        if not set(properties) <= set(PROPERTIES):
-            parser.error(f"unknown property in {label!r}; choose from {', '.join(PROPERTIES)} or 'all'")
+    try:
+        subsets = [(s, parse_properties(s)) for s in args.subsets.split(",")]
+    except MitsubaP3Error as error:
+        parser.error(str(error))
     dataset = load_dataset(args.dataset)
     programs = {}
     for name in dataset.classes("train"):
@@ -49,12 +47,12 @@ def main() -> None:
     rows = []
     for label, properties in subsets:
         config = replace(DistanceConfig(), properties=properties)
-        cells = [f"{100 * select_sigma.one_shot_accuracy(programs, n, args.episodes, args.seed, config):.1f}"
-                 for n in select_sigma.WAYS]
+        cells = [f"{100 * one_shot_accuracy(programs, n, args.episodes, args.seed, config):.1f}"
+                 for n in WAYS]
         rows.append([label] + cells)
         print(f"{label}: {' / '.join(cells)}", flush=True)
     print()
-    print(markdown_table(["distance terms"] + [f"{n}-way 1-shot (train classes)" for n in select_sigma.WAYS], rows))
+    print(markdown_table(["distance terms"] + [f"{n}-way 1-shot (train classes)" for n in WAYS], rows))
 
 
 if __name__ == "__main__":

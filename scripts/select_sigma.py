@@ -27,28 +27,12 @@ from pathlib import Path
 import numpy as np
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
-from mitsuba_p3.concepts import ProtoProgram, classify_many
-from mitsuba_p3.evaluate import CachedPosterior, EvaluationConfig, check_run, compute_posteriors, posterior_path
+from mitsuba_p3.evaluate import (CachedPosterior, EvaluationConfig, check_run, compute_posteriors, one_shot_accuracy,
+                                 posterior_path)
 from mitsuba_p3.infer.mcmc import SamplerConfig
 
 PRESET = dict(chains=8, steps=200, burn_in=30, tune_rounds=3, tune_steps=40)  # as reproduce_tables.py
 WAYS = (5, 10)
-
-
-def one_shot_accuracy(programs: dict[str, list[ProtoProgram]], n_way: int, episodes: int, seed: int,
-                      config) -> float:
-    """Mean accuracy of N-way 1-shot episodes over the classes of ``programs`` (class -> shots' programs)."""
-    rng = np.random.default_rng([seed, n_way])
-    names = sorted(programs)
-    correct = []
-    for _ in range(episodes):
-        chosen = [names[i] for i in rng.choice(len(names), size=n_way, replace=False)]
-        pairs = [rng.choice(len(programs[c]), size=2, replace=False) for c in chosen]
-        support = [programs[c][s] for c, (s, _) in zip(chosen, pairs)]
-        queries = [programs[c][q] for c, (_, q) in zip(chosen, pairs)]
-        probabilities = classify_many(support, queries, config)
-        correct += list(np.argmax(probabilities, axis=1) == np.arange(n_way))
-    return float(np.mean(correct))
 
 
 def main() -> None:

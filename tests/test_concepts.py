@@ -120,3 +120,14 @@ def test_adi_is_zero_at_the_truth_blind_to_symmetry_and_grows_with_error(cube_sh
     assert adi(cube_shot, np.array([0.02, -0.03]), 0.3 + np.pi / 4) > 0.003
     errors = [adi(cube_shot, np.array([0.02 + d, -0.03]), 0.3) for d in (0.01, 0.05, 0.3)]
     assert 0.003 < errors[0] < errors[1] < errors[2] and errors[2] > 0.25   # far away: about the shift
+
+
+def test_distance_terms_parse_from_text():
+    from mitsuba_p3.concepts import PROPERTIES, parse_properties
+    from mitsuba_p3.errors import MitsubaP3Error
+
+    assert parse_properties("all") == PROPERTIES
+    assert parse_properties("colour+class") == ("colour", "class")
+    for bad in ("colour+bogus", ""):
+        with pytest.raises(MitsubaP3Error, match="distance terms"):
+            parse_properties(bad)
