@@ -317,11 +317,15 @@ def evaluate(
     tune_steps: int = typer.Option(SamplerConfig.tune_steps, help="Steps per tuning round."),
     sigma: Optional[float] = typer.Option(None, help="Colour-likelihood sigma (default: the paper's, "
                                                      "1.0; 0.35 for a dark-fitted model)."),
+    distance: str = typer.Option("all", help="Distance terms: 'all' (the paper's) or some joined by '+', e.g. "
+                                             "colour+class; another distance reuses the run's posteriors and "
+                                             "writes its tables to RUN/distance-TERMS."),
     renderer: str = typer.Option("mitsuba", help="mitsuba (pure_callback) or jax (native tracer)."),
     seed: int = typer.Option(0, help="Sampler seed."),
 ) -> None:
     """Few-shot accuracy, calibration and pose error (ADI) of P3/NP3 on a benchmark's test split."""
-    from .evaluate import EvaluationConfig
+    from .concepts import DistanceConfig, parse_properties
+    from .evaluate import EvaluationConfig, tables_dir
     from .evaluate import evaluate as run_evaluation
 
     chosen = tuple(k.strip() for k in likelihoods.split(",") if k.strip())
@@ -333,7 +337,7 @@ def evaluate(
     if sigma is not None and not sigma > 0:
         raise MitsubaP3Error(f"--sigma must be positive; got {sigma}")
     config = EvaluationConfig(likelihoods=chosen, sigma=sigma, renderer=renderer, episodes=episodes, jobs=jobs,
-                              dask=dask,
+                              dask=dask, distance=DistanceConfig(properties=parse_properties(distance)),
                               sampler=SamplerConfig(chains=chains, steps=steps, burn_in=burn_in,
                                                     tune_rounds=tune_rounds, tune_steps=tune_steps, seed=seed))
     bar, track = phase_progress_bar("posteriors")
@@ -342,8 +346,9 @@ def evaluate(
         results = run_evaluation(dataset, model, out, config, progress=track)
     summary = {k: {"accuracy": {s: round(100 * a["mean"], 1) for s, a in r["accuracy"].items()},
                    "mean_adi_m": round(r["adi"]["mean"], 4)} for k, r in results.items()}
-    typer.echo((out / "accuracy.md").read_text() + "\n" + (out / "adi.md").read_text())
-    typer.echo(json.dumps({"run": str(out), **summary}, indent=2))
+    tables = tables_dir(out, config.distance)
+    typer.echo((tables / "accuracy.md").read_text() + "\n" + (tables / "adi.md").read_text())
+    typer.echo(json.dumps({"run": str(out), "tables": str(tables), **summary}, indent=2))
 
 
 baseline_app = typer.Typer(no_args_is_help=True, help="Few-shot baselines: ProtoNets and MAML (Conv-4).")

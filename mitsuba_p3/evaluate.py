@@ -20,7 +20,10 @@
    position and modal yaw; mean and median per class and overall.
 
 Outputs in RUN: ``accuracy.csv``/``.md``, ``adi.csv``/``.md``,
-``calibration.csv``, ``reliability.png``, ``predictions.csv`` and ``results.json``.
+``reliability.png``, ``predictions.csv`` and ``results.json``. A distance with
+other terms than the paper's (``DistanceConfig.properties``) reuses the run's
+posteriors and writes its outputs to ``RUN/distance-TERMS`` (:func:`tables_dir`),
+so the paper's tables are never overwritten.
 """
 from __future__ import annotations
 
@@ -37,7 +40,7 @@ import numpy as np
 
 from .benchmarks.dataset import Dataset, load_dataset
 from .benchmarks.episodes import sample_episodes
-from .concepts import CONTINUOUS, DistanceConfig, ProtoProgram, classify_many
+from .concepts import CONTINUOUS, PROPERTIES, DistanceConfig, ProtoProgram, classify_many
 from .errors import MitsubaP3Error
 from .infer.mcmc import SamplerConfig
 
@@ -295,13 +298,24 @@ def pose_errors(dataset: Dataset, cached: dict[int, CachedPosterior]) -> list[di
 
 # ----------------------------------------------------------------------------- tables
 
+def tables_dir(run_dir: Path, distance: DistanceConfig) -> Path:
+    """Where a run's tables for ``distance`` go: the run folder for the paper's distance (all
+    terms), ``RUN/distance-colour+class`` (say) for another, its terms in the order of
+    ``PROPERTIES`` (the distance is their sum); the posteriors are shared."""
+    terms = [p for p in PROPERTIES if p in distance.properties]
+    if tuple(terms) == PROPERTIES:
+        return Path(run_dir)
+    return Path(run_dir) / ("distance-" + "+".join(terms))
+
+
 def markdown_table(header: list[str], rows: list[list[str]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows]) + "\n"
 
 
-def write_tables(run_dir: Path, results: dict) -> dict:
-    """accuracy / adi / calibration as CSV and markdown, and the reliability plot."""
+def write_tables(run_dir: Path, results: dict, baselines_dir: Path | None = None) -> dict:
+    """accuracy / adi / calibration as CSV and markdown, and the reliability plot, in ``run_dir``;
+    baselines evaluated into ``baselines_dir`` (default ``run_dir``) join the accuracy table."""
     import csv
 
     settings = [f"{n}-way {k}-shot" for n, k in SETTINGS]
@@ -313,7 +327,7 @@ def write_tables(run_dir: Path, results: dict) -> dict:
             acc = result["accuracy"].get(name)
             cells.append(f"{100 * acc['mean']:.1f} ± {100 * acc['half_width']:.1f}" if acc else "-")
         rows.append([likelihood.upper()] + cells)
-    baselines = load_baselines(run_dir)
+    baselines = load_baselines(baselines_dir or run_dir)
     for baseline in baselines:
         rows.append([baseline["model"]] + [
             f"{100 * a['mean']:.1f} ± {100 * a['half_width']:.1f}" if (a := baseline["accuracy"].get(name)) else "-"
@@ -431,12 +445,15 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
             "seconds_per_image": float(np.mean([c.seconds for c in cached.values()])),
             "max_r_hat_median": float(np.median([c.max_r_hat for c in cached.values()])),
         }
-    with open(run_dir / "predictions.csv", "w", newline="") as f:
+    out = tables_dir(run_dir, config.distance)
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "predictions.csv", "w", newline="") as f:
         if predictions:
             writer = csv.DictWriter(f, fieldnames=list(predictions[0]))
             writer.writeheader()
             writer.writerows(predictions)
-    files = write_tables(run_dir, results)
-    (run_dir / "results.json").write_text(json.dumps({"dataset": str(dataset.root), "results": results,
-                                                      "files": files}, indent=1))
+    files = write_tables(out, results, baselines_dir=run_dir)
+    (out / "results.json").write_text(json.dumps({"dataset": str(dataset.root), "results": results,
+                                                  "distance": list(config.distance.properties),
+                                                  "files": files}, indent=1))
     return results

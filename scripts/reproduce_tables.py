@@ -16,10 +16,14 @@ TRAINED data/V --out results/runs/V``) appear in the accuracy table too.
 
     python scripts/reproduce_tables.py [--data data] [--out results] [--episodes 100] [--jobs CORES]
         [--chains 8 --steps 200 ...] [--benchmarks fsclvr,dark,room,ood] [--likelihoods p3,np3] [--sigma S]
+        [--distance all|colour+class|...]
 
 ``--sigma`` replaces the paper's colour-likelihood sigma (choose it on the train
 classes with ``scripts/select_sigma.py``); such runs go to ``runs/V-sigmaS`` and
-get their own rows in the tables.
+get their own rows in the tables. ``--distance colour+class`` scores the same
+posteriors with fewer distance terms (choose them on the train classes with
+``scripts/select_distance.py``); its tables go to ``runs/V/distance-colour+class``
+and get their own rows ("NP3 (colour+class)"); nothing is resampled.
 
 The sampler settings default to a lighter preset than ``mitsuba-p3 infer`` (see
 ``PRESET``): 840 posteriors (420 images x P3/NP3) at the inference defaults
@@ -36,6 +40,8 @@ import sys
 import time
 from pathlib import Path
 
+from mitsuba_p3.concepts import DistanceConfig, parse_properties
+from mitsuba_p3.errors import MitsubaP3Error
 from mitsuba_p3.evaluate import SETTINGS, EvaluationConfig, evaluate, load_baselines, markdown_table
 from mitsuba_p3.infer.mcmc import SamplerConfig
 
@@ -96,30 +102,37 @@ def parse_run_name(name: str) -> tuple[str, float | None] | None:
         return None
 
 
-def label(likelihood: str, sigma: float | None) -> str:
-    return likelihood.upper() + ("" if sigma is None else f" (sigma {sigma:g})")
+def label(likelihood: str, sigma: float | None, distance: str | None = None) -> str:
+    """A table row's name: ``P3``, ``P3 (sigma 0.3)``, ``NP3 (colour+class)``, ..."""
+    notes = ([] if sigma is None else [f"sigma {sigma:g}"]) + ([] if distance is None else [distance])
+    return likelihood.upper() + (f" ({', '.join(notes)})" if notes else "")
 
 
 def collect(out: Path) -> dict:
-    """Every evaluated run under ``out/runs``: {(benchmark, sigma): {likelihood: result}}."""
+    """Every evaluated run under ``out/runs``: {(benchmark, sigma, distance): {likelihood: result}}, where
+    distance is None for the paper's and e.g. ``colour+class`` for tables in ``runs/V/distance-colour+class``."""
     found = {}
-    for path in sorted((out / "runs").glob("*/results.json")):
-        key = parse_run_name(path.parent.name)
+    for path in sorted((out / "runs").glob("*/results.json")) + sorted((out / "runs").glob("*/distance-*/results.json")):
+        run = path.parent if path.parent.parent.name == "runs" else path.parent.parent
+        key = parse_run_name(run.name)
         if key:
-            found[key] = json.loads(path.read_text())["results"]
+            distance = None if run == path.parent else path.parent.name.removeprefix("distance-")
+            found[key + (distance,)] = json.loads(path.read_text())["results"]
     return found
 
 
 def write_tables(out: Path, results: dict) -> None:
     """The accuracy and ADI tables in the paper's layout, from ``collect``'s runs."""
-    sigmas = sorted({s for _, s in results}, key=lambda s: (s is not None, s or 0))
-    models = [(m, s) for s in sigmas for m in ("p3", "np3") if any(m in r for (_, t), r in results.items() if t == s)]
+    variants = sorted({(s, d) for _, s, d in results}, key=lambda v: (v[0] is not None, v[0] or 0, v[1] or ""))
+    models = [(m, s, d) for s, d in variants for m in ("p3", "np3")
+              if any(m in r for (_, *v), r in results.items() if tuple(v) == (s, d))]
+    get = lambda c, m, s, d: results.get((c, s, d), {}).get(m)  # noqa: E731
     header = ["model", "source"] + [TITLES[c] for c in COLUMNS]
-    rows = [[label(m, s), "this project"] + [cells(results[(c, s)][m]) if m in results.get((c, s), {}) else "-"
-                                             for c in COLUMNS] for m, s in models]
+    rows = [[label(m, s, d), "this project"] + [cells(get(c, m, s, d)) if get(c, m, s, d) else "-" for c in COLUMNS]
+            for m, s, d in models]
     found = {}
-    for c, s in results:
-        if s is None:
+    for c, s, d in results:
+        if s is None and d is None:
             for baseline in load_baselines(out / "runs" / c):
                 found.setdefault(baseline["model"], {})[c] = baseline
     for model, per_benchmark in sorted(found.items()):
@@ -129,35 +142,38 @@ def write_tables(out: Path, results: dict) -> None:
         rows.append([model, "paper"] + [numbers[c] for c in COLUMNS])
     note = ("\nCells: 5-way 1-shot / 5-way 5-shot / 10-way 1-shot / 10-way 5-shot accuracy (%). "
             "OOD has 10 test classes. Rows without a sigma use the paper's colour-likelihood sigma (1.0; 0.35 "
-            "for DARK); sigma values were chosen on train classes (scripts/select_sigma.py). "
+            "for DARK); rows without distance terms use the paper's distance (all seven terms). Sigma and "
+            "distance terms were chosen on train classes (scripts/select_sigma.py, scripts/select_distance.py). "
             "The paper's numbers are on its own data sets: compare in spirit.\n")
     (out / "accuracy.md").write_text(markdown_table(header, rows) + note)
     with open(out / "accuracy.csv", "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["benchmark", "model", "sigma", "setting", "accuracy", "half_width_95", "ece", "paper"])
+        writer.writerow(["benchmark", "model", "sigma", "distance", "setting", "accuracy", "half_width_95", "ece",
+                         "paper"])
         for c in COLUMNS:
-            for m, s in models:
-                if m not in results.get((c, s), {}):
+            for m, s, d in models:
+                if not get(c, m, s, d):
                     continue
                 paper = PAPER_ACCURACY[m.upper()][c].split("/")
                 for i, (n, k) in enumerate(SETTINGS):
-                    a = results[(c, s)][m]["accuracy"].get(f"{n}-way {k}-shot")
+                    a = get(c, m, s, d)["accuracy"].get(f"{n}-way {k}-shot")
                     if a:
-                        writer.writerow([c, m, "paper" if s is None else s, f"{n}-way {k}-shot", a["mean"],
-                                         a["half_width"], a["ece"], float(paper[i]) / 100])
-    header = ["benchmark"] + [f"{label(m, s)} mean ADI (m)" for m, s in models] + ["paper P3 / NP3"]
-    adi = lambda c, m, s: (f"{results[(c, s)][m]['adi']['mean']:.4f}"  # noqa: E731
-                           if m in results.get((c, s), {}) else "-")
-    rows = [[TITLES[c]] + [adi(c, m, s) for m, s in models] + [f"{PAPER_ADI[c][0]:.4f} / {PAPER_ADI[c][1]:.4f}"]
-            for c in COLUMNS if any(v == c for v, _ in results)]
+                        writer.writerow([c, m, "paper" if s is None else s, d or "paper", f"{n}-way {k}-shot",
+                                         a["mean"], a["half_width"], a["ece"], float(paper[i]) / 100])
+    # ADI depends on the posteriors only, not on the distance: one column per (model, sigma)
+    pose_models = [(m, s) for m, s, d in models if d is None]
+    header = ["benchmark"] + [f"{label(m, s)} mean ADI (m)" for m, s in pose_models] + ["paper P3 / NP3"]
+    adi = lambda c, m, s: f"{get(c, m, s, None)['adi']['mean']:.4f}" if get(c, m, s, None) else "-"  # noqa: E731
+    rows = [[TITLES[c]] + [adi(c, m, s) for m, s in pose_models] + [f"{PAPER_ADI[c][0]:.4f} / {PAPER_ADI[c][1]:.4f}"]
+            for c in COLUMNS if any(v == c for v, _, _ in results)]
     (out / "adi.md").write_text(markdown_table(header, rows))
     with open(out / "adi.csv", "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["benchmark", "model", "sigma", "mean_adi_m", "median_adi_m", "paper_mean_adi_m"])
         for c in COLUMNS:
-            for m, s in models:
-                if m in results.get((c, s), {}):
-                    a = results[(c, s)][m]["adi"]
+            for m, s in pose_models:
+                if get(c, m, s, None):
+                    a = get(c, m, s, None)["adi"]
                     writer.writerow([c, m, "paper" if s is None else s, a["mean"], a["median"],
                                      PAPER_ADI[c][("p3", "np3").index(m)]])
 
@@ -175,18 +191,27 @@ def main() -> None:
         parser.add_argument("--" + name.replace("_", "-"), type=int, default=value)
     parser.add_argument("--sigma", type=float, default=None,
                         help="colour-likelihood sigma (default: the paper's); runs go to runs/V-sigmaS")
+    parser.add_argument("--distance", default="all",
+                        help="distance terms: 'all' (the paper's) or e.g. colour+class; reuses the posteriors, "
+                             "tables go to runs/V/distance-TERMS")
     args = parser.parse_args()
     if args.sigma is not None and not args.sigma > 0:
         parser.error("--sigma must be positive")
+    try:
+        distance = DistanceConfig(properties=parse_properties(args.distance))
+    except MitsubaP3Error as error:
+        parser.error(str(error))
     sampler = SamplerConfig(**{name: getattr(args, name) for name in PRESET})
     args.out.mkdir(parents=True, exist_ok=True)
     timing_log = args.out / "timing.json"
-    started, total = time.strftime("%Y-%m-%dT%H:%M:%S"), 0.0
+    started, total, invocation = time.strftime("%Y-%m-%dT%H:%M:%S"), 0.0, time.perf_counter()
     for variant in args.benchmarks.split(","):
+        start = time.perf_counter()
         folder, model = prepare(args.data, variant)
+        prepared = (time.perf_counter() - start) / 60
         start = time.perf_counter()
         config = EvaluationConfig(likelihoods=tuple(args.likelihoods.split(",")), sigma=args.sigma, sampler=sampler,
-                                  episodes=args.episodes, jobs=args.jobs)
+                                  episodes=args.episodes, jobs=args.jobs, distance=distance)
         evaluate(folder, model, args.out / "runs" / run_name(variant, args.sigma), config,
                  progress=lambda phase, done, total: print(f"\r{variant} {phase}: {done}/{total}", end="", flush=True))
         minutes = (time.perf_counter() - start) / 60
@@ -196,13 +221,16 @@ def main() -> None:
         write_tables(args.out, collect(args.out))
         # wall-clock minutes per invocation, appended: a resumed reproduction adds its parts up
         log = json.loads(timing_log.read_text()) if timing_log.is_file() else []
-        log.append({"invocation": started, "benchmark": variant, "likelihoods": args.likelihoods, "sigma": args.sigma, "jobs": args.jobs,
+        log.append({"invocation": started, "benchmark": variant, "likelihoods": args.likelihoods, "sigma": args.sigma,
+                    "distance": args.distance, "jobs": args.jobs,
                     "episodes": args.episodes, "minutes": round(minutes, 2),
+                    "generate_and_fit_minutes": round(prepared, 2),
                     "sampler": {k: getattr(args, k) for k in PRESET}})
         timing_log.write_text(json.dumps(log, indent=1))
     print((args.out / "accuracy.md").read_text())
     print((args.out / "adi.md").read_text())
-    print(f"posteriors and episodes of {args.benchmarks}: {total:.1f} min (benchmark generation and fits excluded)")
+    print(f"posteriors and episodes of {args.benchmarks}: {total:.1f} min (benchmark generation and fits excluded); "
+          f"the whole invocation: {(time.perf_counter() - invocation) / 60:.1f} min")
 
 
 if __name__ == "__main__":

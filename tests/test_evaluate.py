@@ -65,6 +65,19 @@ def test_evaluate_resumes_after_kill_and_writes_tables(bench, tmp_path):
         assert (run / name).is_file(), name
     assert "P3" in (run / "accuracy.md").read_text()
 
+    # another distance: the same posteriors, its own tables, the paper distance's left alone
+    paper_results = (run / "results.json").read_bytes()
+    every = {p: p.stat().st_mtime_ns for p in folder.glob("*.npz")}
+    fewer = subprocess.run(command + ["--distance", "colour+class"], capture_output=True, text=True, timeout=600)
+    assert fewer.returncode == 0, fewer.stderr
+    assert {p: p.stat().st_mtime_ns for p in every} == every
+    assert (run / "results.json").read_bytes() == paper_results
+    chosen = json.loads((run / "distance-colour+class" / "results.json").read_text())
+    assert chosen["distance"] == ["colour", "class"] and chosen["results"]["p3"]["accuracy"]["5-way 1-shot"]["episodes"] == 20
+    assert (run / "distance-colour+class" / "accuracy.md").is_file()
+    bad = subprocess.run(command + ["--distance", "colour+hue"], capture_output=True, text=True, timeout=300)
+    assert bad.returncode != 0 and "hue" in bad.stderr
+
     other = subprocess.run(command[:-len(SAMPLER_FLAGS)] + ["--chains", "6"], capture_output=True, text=True,
                            timeout=300)
     assert other.returncode == 2 and "other settings" in other.stderr

@@ -38,7 +38,7 @@ def test_one_shot_accuracy_separates_distinct_classes_only(spread, expect_perfec
     assert 0.0 <= accuracy <= 1.0
 
 
-def test_run_names_round_trip_and_tables_keep_sigma_runs_apart(tmp_path):
+def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_path):
     tables = load_script("reproduce_tables")
     for variant, sigma in (("fsclvr", None), ("dark", 0.1), ("ood", 0.05)):
         assert tables.parse_run_name(tables.run_name(variant, sigma)) == (variant, sigma)
@@ -49,11 +49,18 @@ def test_run_names_round_trip_and_tables_keep_sigma_runs_apart(tmp_path):
         return {"accuracy": {f"{n}-way {k}-shot": cell for n, k in tables.SETTINGS},
                 "adi": {"mean": adi, "median": adi}}
 
-    for name, accuracy in (("fsclvr", 0.5), ("fsclvr-sigma0.1", 0.9)):
+    for name, accuracy in (("fsclvr", 0.5), ("fsclvr-sigma0.1", 0.9), ("fsclvr/distance-colour+class", 0.7),
+                           ("fsclvr-sigma0.1/distance-colour", 0.8)):
         (tmp_path / "runs" / name).mkdir(parents=True)
         (tmp_path / "runs" / name / "results.json").write_text(json.dumps({"results": {"p3": result(accuracy, 0.01)}}))
-    tables.write_tables(tmp_path, tables.collect(tmp_path))
+    found = tables.collect(tmp_path)
+    assert set(found) == {("fsclvr", None, None), ("fsclvr", 0.1, None), ("fsclvr", None, "colour+class"),
+                          ("fsclvr", 0.1, "colour")}
+    tables.write_tables(tmp_path, found)
     lines = (tmp_path / "accuracy.md").read_text().splitlines()
     assert any(line.startswith("| P3 | this project | 50.0/50.0/50.0/50.0 |") for line in lines)
     assert any(line.startswith("| P3 (sigma 0.1) | this project | 90.0/90.0/90.0/90.0 |") for line in lines)
-    assert "P3 (sigma 0.1) mean ADI" in (tmp_path / "adi.md").read_text()
+    assert any(line.startswith("| P3 (colour+class) | this project | 70.0/70.0/70.0/70.0 |") for line in lines)
+    assert any(line.startswith("| P3 (sigma 0.1, colour) | this project | 80.0/80.0/80.0/80.0 |") for line in lines)
+    adi = (tmp_path / "adi.md").read_text()
+    assert "P3 (sigma 0.1) mean ADI" in adi and "colour" not in adi  # ADI does not depend on the distance
