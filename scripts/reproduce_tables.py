@@ -112,12 +112,12 @@ def collect(out: Path) -> dict:
     """Every evaluated run under ``out/runs``: {(benchmark, sigma, distance): {likelihood: result}}, where
     distance is None for the paper's and e.g. ``colour+class`` for tables in ``runs/V/distance-colour+class``."""
     found = {}
-    for path in sorted((out / "runs").glob("*/results.json")) + sorted((out / "runs").glob("*/distance-*/results.json")):
-        run = path.parent if path.parent.parent.name == "runs" else path.parent.parent
+    for run in sorted((out / "runs").glob("*/")):
         key = parse_run_name(run.name)
-        if key:
-            distance = None if run == path.parent else path.parent.name.removeprefix("distance-")
-            found[key + (distance,)] = json.loads(path.read_text())["results"]
+        for path in [run / "results.json", *sorted(run.glob("distance-*/results.json"))] if key else []:
+            if path.is_file():
+                distance = None if path.parent == run else path.parent.name.removeprefix("distance-")
+                found[key + (distance,)] = json.loads(path.read_text())["results"]
     return found
 
 
