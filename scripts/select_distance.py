@@ -12,7 +12,6 @@ split (``scripts/ablate_distance.py --subsets``) without peeking.
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
 from pathlib import Path
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
@@ -46,7 +45,7 @@ def main() -> None:
         parser.error(f"{args.run} needs at least 2 cached posteriors of every train class (select_sigma.py)")
     rows = []
     for label, properties in subsets:
-        config = replace(DistanceConfig(), properties=properties)
+        config = DistanceConfig(properties=properties)
         cells = [f"{100 * one_shot_accuracy(programs, n, args.episodes, args.seed, config):.1f}"
                  for n in WAYS]
         rows.append([label] + cells)
