@@ -72,8 +72,9 @@ _MI = None
 
 
 def mitsuba():
-    """Import Mitsuba in the ``llvm_ad_rgb`` variant (once) with a checked libLLVM,
-    register the project's plugins, and return the ``mitsuba`` module."""
+    """Import Mitsuba in the ``llvm_ad_rgb`` variant (once) with a checked libLLVM and return
+    the ``mitsuba`` module. The project's plugins register themselves when
+    :mod:`mitsuba_p3.render.phong` is imported."""
     global _MI
     if _MI is not None:
         return _MI
@@ -88,9 +89,6 @@ def mitsuba():
     if not dr.has_backend(dr.JitBackend.LLVM):
         raise BackendError(f"Dr.Jit could not initialise its LLVM backend with {path}; {INSTALL_HINT}")
     mi.set_variant(VARIANT)
-    from .render import phong  # registers the 'phong' BSDF and integrator
-
-    phong.register()
     _MI = mi
     return mi
 

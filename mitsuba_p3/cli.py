@@ -285,7 +285,8 @@ def infer(
 ) -> None:
     """Sample the posterior over an image's object (pose, size, class, material); write it and figures."""
     from .fit.model import FittedModel
-    from .infer.posterior import default_likelihood, infer_image, load_observation
+    from .images import load_observation
+    from .infer.posterior import default_likelihood, infer_image
     from .infer.report import write_report
 
     fitted = FittedModel(model)

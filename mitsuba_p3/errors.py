@@ -12,3 +12,35 @@ class BackendError(MitsubaP3Error):
 
 class SceneError(MitsubaP3Error):
     """A scene description (XML or parameters) is malformed or out of range."""
+
+
+class ImageError(MitsubaP3Error):
+    """An image file is missing, unreadable or not an RGB picture."""
+
+
+class BenchmarkError(MitsubaP3Error):
+    """A benchmark request or folder does not follow the protocol."""
+
+
+class DatasetError(BenchmarkError):
+    """A data-set folder is incomplete or inconsistent; the message lists every problem."""
+
+
+class FitError(MitsubaP3Error):
+    """The training stage cannot run on this input."""
+
+
+class InferenceError(MitsubaP3Error):
+    """An observation or request cannot be used for inference."""
+
+
+class EvaluationError(MitsubaP3Error):
+    """A run folder or its settings are unusable."""
+
+
+class BaselineError(MitsubaP3Error):
+    """Bad baseline settings or an unusable training folder."""
+
+
+class ConfigError(MitsubaP3Error):
+    """A configuration value is out of range; raised before any work starts."""

@@ -41,15 +41,12 @@ import numpy as np
 from .benchmarks.dataset import Dataset, load_dataset
 from .benchmarks.episodes import sample_episodes
 from .concepts import CONTINUOUS, PROPERTIES, DistanceConfig, ProtoProgram, classify_many
-from .errors import MitsubaP3Error
+from .errors import EvaluationError
 from .infer.mcmc import SamplerConfig
 
 SETTINGS = ((5, 1), (5, 5), (10, 1), (10, 5))
 RUN_FORMAT = "mitsuba-p3-evaluation"
 
-
-class EvaluationError(MitsubaP3Error):
-    """A run folder or its settings are unusable."""
 
 
 @dataclass

@@ -5,11 +5,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import MitsubaP3Error
+from .errors import ImageError
+from .files import atomic_path
 
+INFERENCE_RESOLUTION = (120, 160)   # (H, W): the size inference and fitting work at
+ASPECT_TOLERANCE = 0.01
 
-class ImageError(MitsubaP3Error):
-    """An image file is missing, unreadable or not an RGB picture."""
 
 
 def read_png(path: str | Path) -> np.ndarray:
@@ -67,7 +68,59 @@ def write_png(path: str | Path, image: np.ndarray) -> Path:
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3:
         raise ImageError(f"{path}: can only write (H, W, 3) images, got shape {image.shape}")
-    tmp = path.with_name(path.name + ".tmp")
-    Image.fromarray(to_uint8(image)).save(tmp, format="PNG")
-    tmp.replace(path)
+    with atomic_path(path) as temporary:
+        Image.fromarray(to_uint8(image)).save(temporary, format="PNG")
     return path
+
+
+def load_image(path: Path, resolution: tuple[int, int]) -> np.ndarray:
+    """Read an image and resize it (area averaging) to ``resolution`` = (H, W), same aspect."""
+    return resize_image(read_png(path), resolution, str(path))
+
+
+def resize_image(image: np.ndarray, resolution: tuple[int, int], source: str = "image") -> np.ndarray:
+    """Resize (H, W, 3) float [0, 1] to ``resolution`` by area averaging; the aspect must match."""
+    from PIL import Image
+
+    height, width = resolution
+    h, w = image.shape[:2]
+    if abs((w / h) / (width / height) - 1.0) > ASPECT_TOLERANCE:
+        raise ImageError(f"{source}: aspect {w}x{h} (W x H) differs from the inference resolution "
+                         f"{width}x{height}; crop it to {width}:{height} first")
+    if (h, w) == (height, width):
+        return np.asarray(image, np.float32)
+    channels = [np.asarray(Image.fromarray(image[..., c], mode="F").resize((width, height), Image.BOX))
+                for c in range(3)]
+    return np.clip(np.stack(channels, axis=-1), 0.0, 1.0).astype(np.float32)
+
+
+def load_observation(path: str | Path, resolution: tuple[int, int] = INFERENCE_RESOLUTION) -> np.ndarray:
+    """An observed image as float32 (H, W, 3) in [0, 1] at ``resolution``.
+
+    PNG/JPEG (8 or 16 bit, grey or RGB, opaque RGBA) are converted; ``.npy``
+    float arrays in [0, 1] are accepted. Transparent pixels, NaN or infinite
+    values, values outside [0, 1] and another aspect ratio are rejected with
+    the reason.
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".npy":
+        return load_image(path, resolution)
+    try:
+        array = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise ImageError(f"{path}: cannot read array ({exc})") from None
+    array = np.asarray(array, np.float32)
+    if array.ndim == 2:
+        array = np.repeat(array[..., None], 3, axis=-1)
+    if array.ndim != 3 or array.shape[-1] not in (3, 4):
+        raise ImageError(f"{path}: expected an (H, W, 3) image array, got shape {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise ImageError(f"{path}: the image has NaN or infinite values")
+    if array.min() < 0.0 or array.max() > 1.0:
+        raise ImageError(f"{path}: values must lie in [0, 1] (found {array.min():.3g}..{array.max():.3g}); "
+                             "divide 8-bit data by 255")
+    if array.shape[-1] == 4:
+        if not np.all(array[..., 3] >= 1.0 - 1e-6):
+            raise ImageError(f"{path}: the image has transparent pixels; flatten it onto a background first")
+        array = array[..., :3]
+    return resize_image(array, resolution, str(path))

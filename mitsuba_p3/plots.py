@@ -19,12 +19,14 @@ def _pyplot():
 def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
     """Save a figure atomically (a killed run never leaves half a PNG) and close it."""
     plt = _pyplot()
+    from .files import atomic_path
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
-    fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
-    plt.close(fig)
-    tmp.replace(path)
+    try:
+        with atomic_path(path) as temporary:
+            fig.savefig(temporary, dpi=dpi, bbox_inches="tight")
+    finally:
+        plt.close(fig)
     return path
 
 
@@ -233,7 +235,7 @@ def trace_plot(idata, path: str | Path, variables: Sequence[str] = ("shift", "sc
     """ArviZ trace plot of the main variables."""
     import arviz as az
 
-    plt = _pyplot()
+    _pyplot()  # the Agg backend, before ArviZ draws
     axes = az.plot_trace(idata, var_names=list(variables), compact=True, figsize=(10, 2.2 * len(variables)))
     fig = np.asarray(axes).ravel()[0].figure
     fig.tight_layout()

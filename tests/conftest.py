@@ -14,6 +14,7 @@ VARIANTS = ("fsclvr", "dark", "room", "ood")
 @pytest.fixture(scope="session")
 def mi():
     from mitsuba_p3.backend import mitsuba
+    from mitsuba_p3.render import phong  # noqa: F401  (registers the phong plugins)
 
     return mitsuba()
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mitsuba_p3.baselines.train import (BaselineError, Checkpoint, TrainConfig, episode_accuracy, meta_train,
-                                        sample_task)
+from mitsuba_p3.errors import BaselineError
+from mitsuba_p3.baselines.train import (Checkpoint, TrainConfig, episode_accuracy, meta_train, sample_task)
 
 RES = 16
 

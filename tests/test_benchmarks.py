@@ -13,11 +13,12 @@ import numpy as np
 import pytest
 
 from mitsuba_p3.benchmarks import protocol
-from mitsuba_p3.benchmarks.dataset import DatasetError, load_dataset, load_image
+from mitsuba_p3.benchmarks.dataset import load_dataset
+from mitsuba_p3.images import load_image
 from mitsuba_p3.benchmarks.episodes import sample_episodes
 from mitsuba_p3.benchmarks.generate import generate, srgb_decode, srgb_encode
 from mitsuba_p3.benchmarks.meshes import MESH_NAMES, build_mesh
-from mitsuba_p3.errors import MitsubaP3Error
+from mitsuba_p3.errors import DatasetError, MitsubaP3Error
 from mitsuba_p3.images import read_png, write_png
 
 from .conftest import ROOT

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
-from mitsuba_p3.evaluate import (EvaluationConfig, EvaluationError, check_run, compute_posteriors, evaluate,
-                                 posterior_path)
+from mitsuba_p3.errors import EvaluationError
+from mitsuba_p3.evaluate import (EvaluationConfig, check_run, compute_posteriors, evaluate, posterior_path)
 from mitsuba_p3.fit.model import fit_model
 from mitsuba_p3.fit.scene_opt import SceneOptConfig
 from mitsuba_p3.infer.mcmc import SamplerConfig

@@ -9,13 +9,14 @@ import numpy as np
 import pytest
 
 from mitsuba_p3.errors import MitsubaP3Error
-from mitsuba_p3.fit.model import FittedModel, fit_model
+from mitsuba_p3.fit.model import fit_model
 from mitsuba_p3.fit.scene_opt import SceneOptConfig
 from mitsuba_p3.images import write_png
 from mitsuba_p3.infer.likelihood import ImageLikelihood, LikelihoodConfig, colour_log_likelihood
 from mitsuba_p3.infer.mcmc import SamplerConfig
 from mitsuba_p3.infer.model import PosteriorModel
-from mitsuba_p3.infer.posterior import Posterior, circular_mode, infer_image, load_observation
+from mitsuba_p3.images import load_observation
+from mitsuba_p3.infer.posterior import Posterior, circular_mode, infer_image
 
 RES = (30, 40)
 TRUTH = {"shift": np.array([0.03, -0.02], np.float32), "theta": np.float32(0.4),

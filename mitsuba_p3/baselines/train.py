@@ -19,9 +19,7 @@ benchmarks are 4:3; cropping would cut off objects near the sides).
 from __future__ import annotations
 
 import json
-import os
 import pickle
-import tempfile
 from dataclasses import asdict, dataclass, field
 from functools import partial
 from pathlib import Path
@@ -29,16 +27,14 @@ from typing import Callable
 
 import numpy as np
 
-from ..errors import MitsubaP3Error
+from ..errors import BaselineError
+from ..files import atomic_write
 from .methods import MAML, METHODS
 
 CHECKPOINT_FORMAT = "mitsuba-p3-baseline"
 # Sized for the 2-core machine (the paper used 60K): see the README for the measured times.
 DEFAULT_ITERATIONS = {"protonets": 2000, "maml": 1000}
 
-
-class BaselineError(MitsubaP3Error):
-    """Bad baseline settings or an unusable training folder."""
 
 
 @dataclass
@@ -104,13 +100,6 @@ def sample_task(rng: np.random.Generator, images: dict[str, np.ndarray], n_way: 
     return (np.concatenate(support), np.array(labels), np.concatenate(queries), np.array(query_labels), n_way)
 
 
-def _atomic_pickle(path: Path, value) -> None:
-    handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    with os.fdopen(handle, "wb") as f:
-        pickle.dump(value, f)
-    os.replace(temporary, path)
-
-
 @dataclass
 class Checkpoint:
     config: dict
@@ -135,9 +124,9 @@ class Checkpoint:
         import jax
 
         to_numpy = lambda tree: jax.tree_util.tree_map(np.asarray, tree)  # noqa: E731
-        _atomic_pickle(Path(folder) / "checkpoint.pkl",
-                       {"format": CHECKPOINT_FORMAT, **asdict(self) | {"params": to_numpy(self.params),
-                                                                      "opt_state": to_numpy(self.opt_state)}})
+        record = {"format": CHECKPOINT_FORMAT, **asdict(self),
+                  "params": to_numpy(self.params), "opt_state": to_numpy(self.opt_state)}
+        atomic_write(Path(folder) / "checkpoint.pkl", pickle.dumps(record))
 
 
 def train_baseline(dataset_dir: str | Path, out: str | Path, config: TrainConfig,

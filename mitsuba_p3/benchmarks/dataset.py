@@ -16,20 +16,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ..images import ImageError, read_png
-from .protocol import SPLITS, BenchmarkError, ClassLabel
+from ..errors import DatasetError
+from ..images import ASPECT_TOLERANCE, INFERENCE_RESOLUTION, load_image
+from .protocol import SPLITS, ClassLabel
 
 FORMAT = "mitsuba-p3-benchmark"
 FORMAT_VERSION = 1
 LABELS_FILE = "labels.json"
 SCENE_FILE = "scene.xml"
-INFERENCE_RESOLUTION = (120, 160)
-ASPECT_TOLERANCE = 0.01
 MAX_REPORTED = 12
 
-
-class DatasetError(BenchmarkError):
-    """A data-set folder is incomplete or inconsistent; the message lists every problem."""
 
 
 @dataclass(frozen=True)
@@ -106,27 +102,6 @@ class Dataset:
         if index not in self._cache:
             self._cache[index] = load_image(self.shots[index].file, self.resolution)
         return self._cache[index]
-
-
-def load_image(path: Path, resolution: tuple[int, int]) -> np.ndarray:
-    """Read an image and resize it (area averaging) to ``resolution`` = (H, W), same aspect."""
-    return resize_image(read_png(path), resolution, str(path))
-
-
-def resize_image(image: np.ndarray, resolution: tuple[int, int], source: str = "image") -> np.ndarray:
-    """Resize (H, W, 3) float [0, 1] to ``resolution`` by area averaging; the aspect must match."""
-    from PIL import Image
-
-    height, width = resolution
-    h, w = image.shape[:2]
-    if abs((w / h) / (width / height) - 1.0) > ASPECT_TOLERANCE:
-        raise ImageError(f"{source}: aspect {w}x{h} (W x H) differs from the inference resolution "
-                         f"{width}x{height}; crop it to {width}:{height} first")
-    if (h, w) == (height, width):
-        return np.asarray(image, np.float32)
-    channels = [np.asarray(Image.fromarray(image[..., c], mode="F").resize((width, height), Image.BOX))
-                for c in range(3)]
-    return np.clip(np.stack(channels, axis=-1), 0.0, 1.0).astype(np.float32)
 
 
 def _check_record(i: int, record: dict, root: Path, problems: list[str]) -> Shot | None:

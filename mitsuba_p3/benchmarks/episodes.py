@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .dataset import Dataset
-from .protocol import BenchmarkError
+from ..errors import BenchmarkError
 
 
 @dataclass(frozen=True)

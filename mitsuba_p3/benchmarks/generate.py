@@ -19,8 +19,10 @@ from typing import Callable
 
 import numpy as np
 
+from ..files import atomic_write
 from .dataset import FORMAT, FORMAT_VERSION, LABELS_FILE, SCENE_FILE
-from .protocol import (OOD_HALF_EXTENT, BenchmarkError, PlannedImage, check_size, check_variant, plan)
+from ..errors import BenchmarkError
+from .protocol import (OOD_HALF_EXTENT, PlannedImage, check_size, check_variant, plan)
 
 WORLDS = Path(__file__).resolve().parents[2] / "scenes" / "benchmarks"
 # Per size: default resolution (H, W). Samples per pixel default to the XML's "spp"
@@ -106,12 +108,6 @@ def label_of(image: PlannedImage, lights: dict) -> dict:
     }
 
 
-def _write_text_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
-
-
 def _world_text(world: Path, height: int, width: int, spp: int) -> str:
     """The world XML with this run's resolution and samples per pixel."""
     text = world.read_text()
@@ -130,7 +126,7 @@ def _copy_world(world: Path, out: Path, text: str) -> None:
             raise BenchmarkError(f"{world}: references {relative}, which does not exist")
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(source, target)
-    _write_text_atomic(out / SCENE_FILE, text)
+    atomic_write(out / SCENE_FILE, text)
 
 
 def _image_is_done(path: Path, height: int, width: int) -> bool:
@@ -185,7 +181,7 @@ def generate(variant: str, out: str | Path, seed: int = 0, size: str = "full",
                                  "or choose a new --out folder")
     out.mkdir(parents=True, exist_ok=True)
     _copy_world(world, out, world_text)
-    _write_text_atomic(labels_path, json.dumps(labels, indent=1))
+    atomic_write(labels_path, json.dumps(labels, indent=1))
 
     mi = mitsuba()
     todo = [im for im in images if not _image_is_done(out / im.file, height, width)]

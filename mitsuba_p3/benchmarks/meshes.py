@@ -115,7 +115,7 @@ MESH_NAMES: tuple[str, ...] = tuple(BUILDERS)
 def build_mesh(name: str) -> trimesh.Trimesh:
     """The named object in the unit frame: bounding box centred at 0, largest half-extent 1."""
     if name not in BUILDERS:
-        from .protocol import BenchmarkError
+        from ..errors import BenchmarkError
 
         raise BenchmarkError(f"unknown object {name!r}; choose one of {', '.join(MESH_NAMES)}")
     mesh = BUILDERS[name]()

@@ -13,7 +13,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ..errors import MitsubaP3Error
+from ..errors import BenchmarkError
 from ..scene import COLOURS, SIZES
 from ..shapes import SHAPES
 
@@ -26,9 +26,6 @@ POSE_RANGE = 0.08
 # Out-of-distribution objects are scaled so their largest half-extent is this (metres).
 OOD_HALF_EXTENT = 0.035
 
-
-class BenchmarkError(MitsubaP3Error):
-    """A benchmark request or folder does not follow the protocol."""
 
 
 @dataclass(frozen=True)

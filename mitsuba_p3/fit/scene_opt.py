@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from ..benchmarks.dataset import Dataset
-from ..errors import MitsubaP3Error
+from ..errors import FitError
 from ..scene import Camera, Floor, PhongMaterial, PointLight, Scene, SceneObject
 from ..shapes import shape_index
 
@@ -29,9 +29,6 @@ MATERIAL_KEYS = ("colour", "ambient", "diffuse", "specular", "shininess")
 GLOBAL_KEYS = ("light_position", "light_intensity", "floor_colour", "floor_ambient", "floor_diffuse",
                "floor_pattern")
 
-
-class FitError(MitsubaP3Error):
-    """The training stage cannot run on this input."""
 
 
 @dataclass

@@ -15,8 +15,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..benchmarks.dataset import INFERENCE_RESOLUTION
-from ..errors import MitsubaP3Error
+from ..errors import InferenceError
 from ..fit.model import FittedModel
 from ..fit.priors import DIMENSION, SLICES
 from ..shapes import SHAPES
@@ -26,43 +25,6 @@ from .model import PosteriorModel
 
 SUMMARY_VARIABLES = ("shift", "theta", "scale", "colour", "ambient", "diffuse", "specular", "shininess")
 
-
-class InferenceError(MitsubaP3Error):
-    """An observation or request cannot be used for inference."""
-
-
-def load_observation(path: str | Path, resolution: tuple[int, int] = INFERENCE_RESOLUTION) -> np.ndarray:
-    """An observed image as float32 (H, W, 3) in [0, 1] at ``resolution``.
-
-    PNG/JPEG (8 or 16 bit, grey or RGB, opaque RGBA) are converted; ``.npy``
-    float arrays in [0, 1] are accepted. Transparent pixels, NaN or infinite
-    values, values outside [0, 1] and another aspect ratio are rejected with
-    the reason.
-    """
-    from ..benchmarks.dataset import load_image, resize_image
-
-    path = Path(path)
-    if path.suffix.lower() != ".npy":
-        return load_image(path, resolution)
-    try:
-        array = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise InferenceError(f"{path}: cannot read array ({exc})") from None
-    array = np.asarray(array, np.float32)
-    if array.ndim == 2:
-        array = np.repeat(array[..., None], 3, axis=-1)
-    if array.ndim != 3 or array.shape[-1] not in (3, 4):
-        raise InferenceError(f"{path}: expected an (H, W, 3) image array, got shape {array.shape}")
-    if not np.all(np.isfinite(array)):
-        raise InferenceError(f"{path}: the image has NaN or infinite values")
-    if array.min() < 0.0 or array.max() > 1.0:
-        raise InferenceError(f"{path}: values must lie in [0, 1] (found {array.min():.3g}..{array.max():.3g}); "
-                             "divide 8-bit data by 255")
-    if array.shape[-1] == 4:
-        if not np.all(array[..., 3] >= 1.0 - 1e-6):
-            raise InferenceError(f"{path}: the image has transparent pixels; flatten it onto a background first")
-        array = array[..., :3]
-    return resize_image(array, resolution, str(path))
 
 
 def circular_mode(angles: np.ndarray, concentration: float = 50.0, grid: int = 720) -> float:
@@ -106,12 +68,11 @@ class Posterior:
 
     def save(self, path: str | Path) -> Path:
         """Write netCDF atomically."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        self.idata.to_netcdf(str(tmp))
-        tmp.replace(path)
-        return path
+        from ..files import atomic_path
+
+        with atomic_path(path) as temporary:
+            self.idata.to_netcdf(str(temporary))
+        return Path(path)
 
     @classmethod
     def load(cls, path: str | Path) -> "Posterior":

@@ -12,8 +12,10 @@ over the lights, so that the image is affine in the materials.
 """
 from __future__ import annotations
 
-import drjit as dr
-import mitsuba as mi
+from ..backend import mitsuba
+
+mi = mitsuba()
+import drjit as dr  # noqa: E402  (after the backend has chosen libLLVM)
 
 # Shadow rays leave the surface this far (metres) along the normal; objects are >= 1 cm.
 SHADOW_OFFSET = 1e-4
@@ -260,3 +262,6 @@ def register() -> None:
         mi.register_bsdf(BSDF, lambda props: PhongBSDF(props))
         mi.register_integrator(INTEGRATOR, lambda props: PhongIntegrator(props))
         _REGISTERED = True
+
+
+register()  # importing this module makes 'phong' and 'phong_integrator' loadable
