@@ -106,11 +106,11 @@ def loss_curve(rows: list[dict], path: str | Path, title: str = "") -> Path:
 
 def gmm_priors(prior, materials: dict, path: str | Path) -> Path:
     """Each GMM prior's density over the fitted materials it was fitted to (a rug and a histogram)."""
-    from .fit.priors import GMM_VARIABLES
+    from .space import MATERIAL_VARIABLES
 
     plt = _pyplot()
     panels = [("colour", i, name) for i, name in enumerate(("red", "green", "blue"))] + \
-             [(v, 0, v) for v in GMM_VARIABLES if v != "colour"]
+             [(v, 0, v) for v in MATERIAL_VARIABLES if v != "colour"]
     fig, axes = plt.subplots(2, 4, figsize=(12, 5))
     for ax, (variable, dim, label) in zip(axes.flat, panels):
         g = prior.gmms[variable]
@@ -134,7 +134,7 @@ def gmm_priors(prior, materials: dict, path: str | Path) -> Path:
 def reparametrisation(prior, path: str | Path, samples: int = 20000, seed: int = 0) -> Path:
     """For each variable: prior samples in the natural space and in the unconstrained space,
     with the pushed-back density log p(z) drawn over the latter."""
-    from .fit.priors import SLICES
+    from .space import SLICES
 
     plt = _pyplot()
     rng = np.random.default_rng(seed)

@@ -20,7 +20,7 @@ import numpy as np
 
 from mitsuba_p3 import plots
 from mitsuba_p3.fit.model import FittedModel
-from mitsuba_p3.fit.priors import render_params
+from mitsuba_p3.space import render_params
 from mitsuba_p3.render import make_renderer
 from mitsuba_p3.scene import Camera
 

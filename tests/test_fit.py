@@ -13,7 +13,8 @@ from mitsuba_p3.benchmarks.generate import generate
 from mitsuba_p3.errors import MitsubaP3Error
 from mitsuba_p3.fit.features import LAYERS, IMAGENET_MEAN, IMAGENET_STD, select_channels, vgg16_weights, vgg_features
 from mitsuba_p3.fit.model import FittedModel, fit_model
-from mitsuba_p3.fit.priors import SLICES, GMM, Prior, PriorConfig, fit_gmm, fit_priors
+from mitsuba_p3.fit.priors import GMM, Prior, PriorConfig, fit_gmm, fit_priors
+from mitsuba_p3.space import SLICES
 from mitsuba_p3.fit.scene_opt import SceneOptConfig, optimise_scene
 from mitsuba_p3.images import write_png
 

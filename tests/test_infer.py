@@ -220,11 +220,11 @@ def test_sampler_weighs_modes_correctly(fitted):
     import jax
     import jax.numpy as jnp
 
-    from mitsuba_p3.fit.priors import SLICES
-    from mitsuba_p3.infer.mcmc import mode_of, mode_threshold, sample
+    from mitsuba_p3.infer.mcmc import Target, sample
+    from mitsuba_p3.space import HYPOTHESES, SLICES
 
     prior = fitted.prior
-    threshold = mode_threshold(prior)
+    threshold = prior.specular_threshold()
     weights, widths = np.array([0.5, 0.3, 0.2]), np.full(3, 1.0)
     centres = np.zeros((3, 15), np.float32)
     centres[:, SLICES["kappa"]] = [[5, 0], [0, 5], [-5, -5]]
@@ -238,8 +238,8 @@ def test_sampler_weighs_modes_correctly(fitted):
     config = SamplerConfig(chains=12, steps=3000, burn_in=100, tune_rounds=4, tune_steps=100,
                            symmetry_moves=False, material_gibbs=False, walks_per_step=1, init_candidates=200,
                            mode_jump_probability=0.3, seed=1)
-    run = sample(logdensity, prior, config)
-    labels = mode_of(run.positions.reshape(-1, 15), threshold) // 2
+    run = sample(Target(lambda z, _: logdensity(z), prior.sample, prior.hypothesis, len(HYPOTHESES)), config)
+    labels = prior.hypothesis(run.positions.reshape(-1, 15)) // 2
     frequencies = np.bincount(labels, minlength=3) / len(labels)
     np.testing.assert_allclose(frequencies, weights, atol=0.08)
     assert run.statistics["jumps_accepted"] > 100

@@ -29,14 +29,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-GMM_VARIABLES = ("colour", "ambient", "diffuse", "specular", "shininess")
-# Layout of the unconstrained vector z.
-SLICES: dict[str, slice] = {
-    "shift": slice(0, 2), "theta": slice(2, 3), "scale": slice(3, 6), "kappa": slice(6, 8),
-    "colour": slice(8, 11), "ambient": slice(11, 12), "diffuse": slice(12, 13),
-    "specular": slice(13, 14), "shininess": slice(14, 15),
-}
-DIMENSION = 15
+from ..space import MATERIAL_VARIABLES, SLICES, hypothesis_of
 
 
 @dataclass
@@ -126,7 +119,7 @@ class Prior:
     """The prior over Omega with its bijectors; :meth:`log_prob` works on the unconstrained z."""
 
     def __init__(self, config: PriorConfig, gmms: dict[str, GMM]):
-        missing = set(GMM_VARIABLES) - set(gmms)
+        missing = set(MATERIAL_VARIABLES) - set(gmms)
         if missing:
             raise ValueError(f"GMM priors missing for {sorted(missing)}")
         self.config = config
@@ -148,7 +141,7 @@ class Prior:
             "scale": jnp.exp(z[..., SLICES["scale"]]),
             "class_probabilities": jax.nn.softmax(logits, axis=-1),
         }
-        for name in GMM_VARIABLES:
+        for name in MATERIAL_VARIABLES:
             g = self.gmms[name]
             value = g.mean + g.std * z[..., SLICES[name]]
             out[name] = value if name == "colour" else value[..., 0]
@@ -166,7 +159,7 @@ class Prior:
             "scale": np.log(np.asarray(x["scale"])),
             "kappa": np.log(probs[..., :2]) - np.log(probs[..., 2:3]),
         }
-        for name in GMM_VARIABLES:
+        for name in MATERIAL_VARIABLES:
             g = self.gmms[name]
             value = np.asarray(x[name], np.float64)
             value = value if name == "colour" else value[..., None]
@@ -209,7 +202,7 @@ class Prior:
                     - n * logsumexp(log_pi - lam * log_p, axis=-1))
         parts["kappa"] = concrete + jnp.sum(log_p, -1)
         # GMM variables: affine bijector, jacobian prod(std)
-        for name in GMM_VARIABLES:
+        for name in MATERIAL_VARIABLES:
             g = self.gmms[name]
             value = x[name] if name == "colour" else x[name][..., None]
             parts[name] = g.log_prob(value) + float(np.sum(np.log(g.std)))
@@ -238,7 +231,7 @@ class Prior:
         probs = np.exp(logits - logits.max(-1, keepdims=True))
         probs /= probs.sum(-1, keepdims=True)
         out = {"shift": shift, "theta": theta, "scale": scale, "class_probabilities": probs}
-        for name in GMM_VARIABLES:
+        for name in MATERIAL_VARIABLES:
             draws = self.gmms[name].sample(rng, n)
             out[name] = draws if name == "colour" else draws[:, 0]
         return out
@@ -246,6 +239,25 @@ class Prior:
     def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
         """n draws of z (n, 15)."""
         return self.unconstrain(self.sample_constrained(rng, n))
+
+    # ------------------------------------------------------------ hypotheses
+    def specular_threshold(self) -> float:
+        """Unconstrained specular value between its GMM's two components (inf for one component):
+        below it a point is matte, above it shiny."""
+        g = self.gmms["specular"]
+        if len(g.weights) < 2:
+            return float("inf")
+        centres = (np.sort(g.means[:, 0]) - g.mean[0]) / g.std[0]
+        return float(centres[:2].mean())
+
+    def hypothesis(self, z):
+        """The discrete hypothesis (shape class x material kind, :data:`mitsuba_p3.space.HYPOTHESES`)
+        of positions z (..., 15), jax-traceable; numpy in, numpy out."""
+        if isinstance(z, np.ndarray):
+            return hypothesis_of(z, self.specular_threshold(), np)
+        import jax.numpy as jnp
+
+        return hypothesis_of(z, self.specular_threshold(), jnp)
 
     # ------------------------------------------------------------ storage
     def as_dict(self) -> dict:
@@ -269,24 +281,7 @@ def fit_priors(materials: dict[str, dict], config: PriorConfig | None = None) ->
     config = config or PriorConfig()
     rows = list(materials.values())
     gmms = {}
-    for name in GMM_VARIABLES:
+    for name in MATERIAL_VARIABLES:
         values = np.array([np.atleast_1d(row[name]) for row in rows], np.float64)
         gmms[name] = fit_gmm(values, config.gmm_components, config.gmm_seed)
     return Prior(config, gmms)
-
-
-def render_params(x: dict, xp=np) -> dict:
-    """Constrained values (batched or not) -> the renderer contract's object parameters.
-
-    The class is the argmax of the relaxed one-hot; colours are clipped to [0, 1],
-    Phong weights to >= 0 and the shininess to >= 1 (the GMMs have unbounded support).
-    ``xp`` is ``numpy`` or ``jax.numpy`` (inside the sampler).
-    """
-    f32 = lambda v: xp.asarray(v, xp.float32)  # noqa: E731
-    return {
-        "shift": f32(x["shift"]), "theta": f32(x["theta"]), "scale": f32(x["scale"]),
-        "kappa": xp.argmax(xp.asarray(x["class_probabilities"]), axis=-1).astype(xp.int32),
-        "colour": xp.clip(f32(x["colour"]), 0.0, 1.0),
-        "ambient": xp.maximum(f32(x["ambient"]), 0.0), "diffuse": xp.maximum(f32(x["diffuse"]), 0.0),
-        "specular": xp.maximum(f32(x["specular"]), 0.0), "shininess": xp.maximum(f32(x["shininess"]), 1.0),
-    }

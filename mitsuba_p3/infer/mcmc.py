@@ -17,9 +17,11 @@ Phases, all seeded:
 3. **Burn-in**, then **sampling** with the proposal fixed, so the kept draws
    come from one valid MH kernel.
 
-A *mode* is a shape class times a material kind (the specular weight's GMM
-component: matte or shiny); the posterior has separated modes along both. Each
-step of a chain is one of:
+The sampler knows nothing of scenes: a :class:`Target` hands it the log density,
+a way to draw starting points, and a ``mode_fn`` that labels each position with
+one of ``modes`` discrete modes (for image posteriors, a shape class times a
+material kind: :meth:`mitsuba_p3.fit.priors.Prior.hypothesis`). The posterior
+has separated modes along these labels. Each step of a chain is one of:
 
 - a **walk** (probability 1 - ``mode_jump_probability``): a Gaussian step with
   the walk covariance;
@@ -34,20 +36,16 @@ step of a chain is one of:
 a known three-mode target their chains settled in whichever modes tuning had
 visited, so the pooled covariance stays.)
 
-After every walk comes a **symmetry move**: turn the object by 90 degrees
-(swapping its x and y half-extents), or by 180 degrees. Every primitive (box,
-ellipsoid, elliptic cylinder) looks exactly the same after it, so the likelihood
-does not change and the move costs no render. It is accepted with the MH ratio
-of the yaw prior. Without it, chains stay in one of the four equivalent yaw
-modes and R-hat never settles.
+After every walk the target's ``walk_move`` (if any) runs: for image posteriors
+the symmetry move of :meth:`mitsuba_p3.infer.model.PosteriorCore.symmetry_move`,
+which costs no render. After the ``walks_per_step`` walks of a recorded step the
+target's ``step_move`` (if any) runs: for image posteriors the material
+Metropolis-within-Gibbs update (:meth:`~mitsuba_p3.infer.model.PosteriorCore.material_move`);
+``walk_mask`` then keeps the walk off the dimensions that move updates.
 
-With ``material_gibbs`` (the default) every recorded step is ``walks_per_step``
-walks over pose, class and shininess, then a Metropolis-within-Gibbs update of
-the colour and of (k_a, k_d, k_s) from one render of the material bases
-(:meth:`mitsuba_p3.infer.model.PosteriorModel.material_move`). Measured on one
-fsclvr test image (10 chains, 600 draws): the materials' ESS rises from 20-200 to
-900-4700 and every R-hat falls below 1.09, for a step that costs about 2.7
-renders instead of 3.
+The pieces are pure functions over NamedTuple states, as in blackjax:
+:func:`init` makes the chains' state, :func:`build_step` one recorded step of every
+chain, :func:`sample` the phases around them.
 """
 from __future__ import annotations
 
@@ -57,10 +55,9 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
-from ..fit.priors import SLICES
 
 
-@dataclass
+@dataclass(frozen=True)
 class SamplerConfig:
     chains: int = 10
     steps: int = 600             # kept draws per chain
@@ -78,6 +75,37 @@ class SamplerConfig:
     block: int = 50              # steps per compiled call (progress granularity)
     seed: int = 0
 
+    def __post_init__(self):
+        from ..errors import ConfigError
+
+        counts = {"chains": 2, "steps": 1, "burn_in": 0, "tune_rounds": 0, "tune_steps": 1, "walks_per_step": 1,
+                  "init_candidates": 1, "block": 1, "seed": 0}
+        for name, least in counts.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+                raise ConfigError(f"sampler {name.replace('_', '-')} must be a whole number >= {least}; got {value!r}")
+        for name in ("initial_scale", "cull_margin"):
+            if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ConfigError(f"sampler {name.replace('_', '-')} must be positive; got {getattr(self, name)!r}")
+        for name in ("target_acceptance", "mode_jump_probability"):
+            if not 0 <= getattr(self, name) < 1:
+                raise ConfigError(f"sampler {name.replace('_', '-')} must lie in [0, 1); got {getattr(self, name)!r}")
+
+
+class Target(NamedTuple):
+    """What the sampler knows of a model: functions, all jax-traceable except ``initial_fn``.
+
+    Hashable (a tuple of functions and numbers), so a compiled sampler is reused for
+    the same target; ``observation`` is an argument of the compiled code, not part of it."""
+
+    logdensity_fn: Callable          # (z, observation) -> log density
+    initial_fn: Callable             # (rng, n) -> (n, d) candidate starting points (numpy)
+    mode_fn: Callable                # z (..., d) -> int mode label in [0, modes)
+    modes: int
+    walk_move: Callable | None = None   # (key, state) -> state: leaves the target invariant, after every walk
+    step_move: Callable | None = None   # (key, state, observation) -> (state, accepted): after a step's walks
+    walk_mask: tuple | None = None      # per dimension 1 (walked) or 0 (left to step_move); None: all walked
+
 
 class SamplerRun(NamedTuple):
     positions: np.ndarray         # (chains, draws, 15) unconstrained
@@ -89,39 +117,19 @@ class SamplerRun(NamedTuple):
     statistics: dict              # acceptance rates of the kept draws' walks and jumps
 
 
-MODES = 6  # 3 shape classes x 2 material kinds
-
-
 class Proposal(NamedTuple):
     """The walk covariance and the modes' means, learnt during tuning (see the module docstring)."""
     tril: np.ndarray              # (d, d) lower Cholesky factor of the walk covariance
-    means: np.ndarray             # (MODES, d)
-    known: np.ndarray             # (MODES,) bool: the mode held enough draws to jump to it
+    means: np.ndarray             # (modes, d)
+    known: np.ndarray             # (modes,) bool: the mode held enough draws to jump to it
 
     @classmethod
-    def isotropic(cls, scale: float, mask: np.ndarray) -> "Proposal":
+    def isotropic(cls, scale: float, mask: np.ndarray, modes: int) -> "Proposal":
         d = len(mask)
-        return cls(np.diag(scale * mask).astype(np.float32), np.zeros((MODES, d), np.float32), np.zeros(MODES, bool))
+        return cls(np.diag(scale * mask).astype(np.float32), np.zeros((modes, d), np.float32), np.zeros(modes, bool))
 
 
-def mode_threshold(prior) -> float:
-    """Unconstrained specular value between its GMM's two components (inf for one component)."""
-    g = prior.gmms["specular"]
-    if len(g.weights) < 2:
-        return float("inf")
-    centres = (np.sort(g.means[:, 0]) - g.mean[0]) / g.std[0]
-    return float(centres[:2].mean())
-
-
-def mode_of(z, threshold: float, xp=np):
-    """Mode label of positions (..., 15): class * 2 + (specular above the threshold)."""
-    k = SLICES["kappa"].start
-    logits = xp.stack([z[..., k], z[..., k + 1], xp.zeros_like(z[..., k])], axis=-1)
-    shiny = (z[..., SLICES["specular"].start] > threshold).astype(xp.int32)
-    return xp.argmax(logits, axis=-1).astype(xp.int32) * 2 + shiny
-
-
-def _transition(proposal: Proposal, threshold: float, config: SamplerConfig):
+def _transition(proposal: Proposal, mode_fn: Callable, modes: int, jump_probability: float):
     """The symmetric proposal mixture of the module docstring, for blackjax's rmh kernel."""
     import jax
     import jax.numpy as jnp
@@ -133,44 +141,14 @@ def _transition(proposal: Proposal, threshold: float, config: SamplerConfig):
         k_choice, k_noise, k_target = jax.random.split(key, 3)
         walk = position + tril @ jax.random.normal(k_noise, position.shape)
         # a mode jump shifts by the difference of the modes' means; void unless it lands in the target
-        current = mode_of(position, threshold, jnp)
-        target = (current + jax.random.randint(k_target, (), 1, MODES)) % MODES
+        current = mode_fn(position)
+        target = (current + jax.random.randint(k_target, (), 1, modes)) % modes
         shifted = position + means[target] - means[current]
-        lands = (mode_of(shifted, threshold, jnp) == target) & known[target] & known[current]
-        is_jump = jax.random.uniform(k_choice) < config.mode_jump_probability
+        lands = (mode_fn(shifted) == target) & known[target] & known[current]
+        is_jump = jax.random.uniform(k_choice) < jump_probability
         return jnp.where(is_jump, jnp.where(lands, shifted, position), walk), is_jump
 
     return generate
-
-
-def _symmetry_move(prior):
-    """An MH move over the primitives' exact symmetries (see the module docstring); no render."""
-    import jax
-    import jax.numpy as jnp
-
-    t = SLICES["theta"].start
-    sx, sy = SLICES["scale"].start, SLICES["scale"].start + 1
-    turns = jnp.array([np.pi / 2, np.pi, -np.pi / 2])
-    concentration = prior.config.theta_concentration
-
-    def move(key, state):
-        k_choice, k_accept = jax.random.split(key)
-        choice = jax.random.randint(k_choice, (), 0, 3)
-        z = state.position
-        theta = -jnp.pi + 2 * jnp.pi * jax.nn.sigmoid(z[t])
-        turned = jnp.mod(theta + turns[choice] + jnp.pi, 2 * jnp.pi) - jnp.pi
-        u = jnp.clip((turned + jnp.pi) / (2 * jnp.pi), 1e-7, 1 - 1e-7)
-        new = z.at[t].set(jnp.log(u) - jnp.log1p(-u))
-        swapped = new.at[sx].set(z[sy]).at[sy].set(z[sx])
-        new = jnp.where(choice == 1, new, swapped)
-        # log pi(z') - log pi(z) + log|det dz'/dz| reduces to the yaw prior's ratio
-        log_ratio = concentration * (jnp.cos(turned) - jnp.cos(theta))
-        accept = jnp.log(jax.random.uniform(k_accept)) < log_ratio
-        # the log joint changes only through the prior's yaw term (likelihood and scale prior are invariant)
-        new_logdensity = state.logdensity + prior.log_prob(new) - prior.log_prob(z)
-        return type(state)(jnp.where(accept, new, z), jnp.where(accept, new_logdensity, state.logdensity))
-
-    return move
 
 
 class _Compiled(NamedTuple):
@@ -186,64 +164,82 @@ class _Compiled(NamedTuple):
         return cls(*(getattr(config, name) for name in cls._fields))
 
 
-@functools.lru_cache(maxsize=8)
-def _block_runner(logdensity_fn: Callable, prior, threshold: float, config: _Compiled,
-                  extra_move: Callable | None = None):
-    """A jitted ``run(key, states, proposal, observation)`` running ``config.block`` MH steps of
-    every chain. Cached: the same target (e.g. one :class:`PosteriorCore`'s bound methods) reuses
-    the compiled function for every observation of the same shape."""
+def init(positions, logdensities):
+    """The chains' state (blackjax's ``RWState``) from starting positions (chains, d) and their log densities."""
+    import jax.numpy as jnp
+    from blackjax.mcmc.random_walk import RWState
+
+    return RWState(jnp.asarray(positions), jnp.asarray(logdensities))
+
+
+def build_step(target: Target, config: _Compiled):
+    """One recorded step of every chain: ``step(key, states, proposal, observation) -> (states, info)``.
+
+    A step is ``config.walks_per_step`` proposals of the mixture (walk or mode jump),
+    each followed by the target's ``walk_move`` (when ``config.symmetry_moves``), then
+    the target's ``step_move``. ``info`` is (positions, log densities, move counts);
+    the move counts per chain are (walk accepted, walk proposed, jump accepted,
+    jump proposed), a void proposal (no move) counting as neither."""
     import jax
     import jax.numpy as jnp
     from blackjax.mcmc.random_walk import build_rmh
 
     kernel = build_rmh()
-    symmetry = _symmetry_move(prior)
 
-    @jax.jit
-    def run(key, states, proposal, observation):
-        generate = _transition(Proposal(*proposal), threshold, config)
-        target = lambda z: logdensity_fn(z, observation)  # noqa: E731
+    def step(key, states, proposal, observation):
+        generate = _transition(Proposal(*proposal), target.mode_fn, target.modes, config.mode_jump_probability)
+        logdensity = lambda z: target.logdensity_fn(z, observation)  # noqa: E731
 
         def walk(states, key):
             k_propose, k_walk, k_symmetry = jax.random.split(key, 3)
             proposed, jumps = jax.vmap(generate)(jax.random.split(k_propose, config.chains), states.position)
             keys = jax.random.split(k_walk, config.chains)
-            new, info = jax.vmap(lambda k, s, p: kernel(k, s, target, lambda _, __: p))(
-                keys, states, proposed)
-            # record (walk accepted, walk proposed, jump accepted, jump proposed) per chain; a void
-            # proposal (no move) counts as neither
+            new, info = jax.vmap(lambda k, s, p: kernel(k, s, logdensity, lambda _, __: p))(keys, states, proposed)
             real = jnp.any(proposed != states.position, axis=-1)
             is_walk, is_jump = real & ~jumps, real & jumps
             moves = jnp.stack([info.is_accepted & is_walk, is_walk, info.is_accepted & is_jump, is_jump], axis=-1)
-            if config.symmetry_moves:
-                new = jax.vmap(symmetry)(jax.random.split(k_symmetry, config.chains), new)
+            if config.symmetry_moves and target.walk_move is not None:
+                new = jax.vmap(target.walk_move)(jax.random.split(k_symmetry, config.chains), new)
             return new, moves.astype(jnp.int32)
 
-        def one_step(states, key):
-            k_walks, k_extra = jax.random.split(key)
-            states, moves = jax.lax.scan(walk, states, jax.random.split(k_walks, config.walks_per_step))
-            if extra_move is not None:
-                states, _ = jax.vmap(extra_move, in_axes=(0, 0, None))(
-                    jax.random.split(k_extra, config.chains), states, observation)
-            return states, (states.position, states.logdensity, moves.sum(axis=0))
+        k_walks, k_extra = jax.random.split(key)
+        states, moves = jax.lax.scan(walk, states, jax.random.split(k_walks, config.walks_per_step))
+        if target.step_move is not None:
+            states, _ = jax.vmap(target.step_move, in_axes=(0, 0, None))(
+                jax.random.split(k_extra, config.chains), states, observation)
+        return states, (states.position, states.logdensity, moves.sum(axis=0))
 
-        return jax.lax.scan(one_step, states, jax.random.split(key, config.block))
+    return step
+
+
+@functools.lru_cache(maxsize=8)
+def _block_runner(target: Target, config: _Compiled):
+    """A jitted ``run(key, states, proposal, observation)`` running ``config.block`` steps of every
+    chain. Cached: the same target (e.g. one :class:`PosteriorCore`'s bound methods) reuses the
+    compiled function for every observation of the same shape."""
+    import jax
+
+    step = build_step(target, config)
+
+    @jax.jit
+    def run(key, states, proposal, observation):
+        return jax.lax.scan(lambda s, k: step(k, s, proposal, observation), states,
+                            jax.random.split(key, config.block))
 
     return run
 
 
-def learn_proposal(positions: np.ndarray, threshold: float, mask: np.ndarray, factor: float,
+def learn_proposal(positions: np.ndarray, labels: np.ndarray, modes: int, mask: np.ndarray, factor: float,
                    min_share: float = 0.01) -> Proposal:
-    """The walk covariance and the modes' means from tuning draws (n, d).
+    """The walk covariance and the modes' means from tuning draws (n, d) and their mode labels (n,).
 
     The walk covariance is the within-mode covariance pooled over modes (the spread
     between modes is the jumps' business), scaled by 2.38^2 / d (Haario et al.
     2001) and the tuned ``factor``. A mode holding >= ``min_share`` of the draws is
     *known* (a jump target)."""
     dimension = positions.shape[1]
-    labels = mode_of(positions, threshold)
-    counts = np.bincount(labels, minlength=MODES)
-    means = np.zeros((MODES, dimension))
+    counts = np.bincount(labels, minlength=modes)
+    means = np.zeros((modes, dimension))
     scatter = np.zeros((dimension, dimension))
     for m in np.flatnonzero(counts):
         members = positions[labels == m]
@@ -284,19 +280,18 @@ def _batch_logdensity(logdensity_fn: Callable):
     return jax.jit(jax.vmap(logdensity_fn, in_axes=(0, None)))
 
 
-def initial_positions(logdensity_fn: Callable, prior, config: SamplerConfig, rng: np.random.Generator,
-                      observation=()):
-    """The best of ``init_candidates`` prior draws (batched evaluation), stratified by mode,
-    and their log densities.
+def initial_positions(target: Target, config: SamplerConfig, rng: np.random.Generator, observation=()):
+    """The best of ``init_candidates`` draws of ``target.initial_fn`` (batched evaluation),
+    stratified by mode, and their log densities.
 
     Chains go round-robin to the modes in order of their best candidate, so every
     plausible mode starts with some chains; culling during tuning removes the
     hopeless ones."""
-    candidates = prior.sample(rng, max(config.init_candidates, config.chains)).astype(np.float32)
-    scores = np.asarray(_batch_logdensity(logdensity_fn)(candidates, observation))
+    candidates = np.asarray(target.initial_fn(rng, max(config.init_candidates, config.chains)), np.float32)
+    scores = np.asarray(_batch_logdensity(target.logdensity_fn)(candidates, observation))
     scores = np.where(np.isfinite(scores), scores, -np.inf)
     order = np.argsort(-scores)
-    labels = mode_of(candidates[order], mode_threshold(prior))
+    labels = np.asarray(target.mode_fn(candidates[order]))
     queues = [list(order[labels == m]) for m in dict.fromkeys(labels.tolist())]  # modes by best candidate
     chosen = []
     while len(chosen) < config.chains:
@@ -307,40 +302,26 @@ def initial_positions(logdensity_fn: Callable, prior, config: SamplerConfig, rng
     return candidates[chosen], scores[chosen].astype(np.float32)
 
 
-def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
-           progress: Callable[[str, int, int], None] | None = None,
-           extra_move: Callable | None = None, walk_mask: np.ndarray | None = None,
-           observation=None) -> SamplerRun:
-    """Run initialisation, tuning, burn-in and sampling; returns the kept draws.
+def sample(target: Target, config: SamplerConfig | None = None,
+           progress: Callable[[str, int, int], None] | None = None, observation=()) -> SamplerRun:
+    """Run initialisation, tuning, burn-in and sampling of ``target``; returns the kept draws.
 
-    ``extra_move(key, state) -> (state, accepted)``, when given, runs after every
-    random-walk step (e.g. :meth:`PosteriorModel.material_move`); ``walk_mask`` (15,)
-    then limits the random walk to the dimensions that move does not update.
-
-    With ``observation`` (a pytree), the target is ``logdensity_fn(z, observation)``
-    and the move ``extra_move(key, state, observation)``: the data enter the compiled
-    sampler as an argument, so a second image with the same functions (e.g. a shared
-    :class:`PosteriorCore`'s methods) runs without recompiling."""
+    ``observation`` (a pytree) is the second argument of the target's functions: the
+    data enter the compiled sampler as an argument, so a second image with the same
+    target (e.g. a shared :class:`PosteriorCore`'s methods) runs without recompiling."""
     import jax
     import jax.numpy as jnp
-    from blackjax.mcmc.random_walk import RWState
 
     config = config or SamplerConfig()
-    if observation is None:   # a target of the position alone
-        target, move = logdensity_fn, extra_move
-        logdensity_fn = lambda z, _: target(z)  # noqa: E731
-        extra_move = None if move is None else (lambda key, state, _: move(key, state))
-        observation = ()
     rng = np.random.default_rng(config.seed)
     key = jax.random.PRNGKey(config.seed)
-    start, scores = initial_positions(logdensity_fn, prior, config, rng, observation)
-    states = RWState(jnp.asarray(start), jnp.asarray(scores))
+    start, scores = initial_positions(target, config, rng, observation)
+    states = init(start, scores)
     dimension = start.shape[1]
-    mask = np.ones(dimension, np.float32) if walk_mask is None else np.asarray(walk_mask, np.float32)
-    proposal = Proposal.isotropic(config.initial_scale, mask)
+    mask = np.ones(dimension, np.float32) if target.walk_mask is None else np.asarray(target.walk_mask, np.float32)
+    proposal = Proposal.isotropic(config.initial_scale, mask, target.modes)
     factor = 1.0
-    threshold = mode_threshold(prior)
-    run = _block_runner(logdensity_fn, prior, threshold, _Compiled.of(config), extra_move)
+    run = _block_runner(target, _Compiled.of(config))
     tuning = []
     blocks_per_round = max(1, -(-config.tune_steps // config.block))
     total = (config.tune_rounds * blocks_per_round + -(-config.burn_in // config.block)
@@ -358,6 +339,8 @@ def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
             done += config.block
             if progress:
                 progress(phase, done, total)
+        if not out:
+            return states, None
         return states, [np.concatenate(parts) for parts in zip(*out)]
 
     history = []
@@ -370,7 +353,7 @@ def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
         factor *= _acceptance_correction(statistics["walk_acceptance"], config.target_acceptance)
         # the covariance window: the later half of the rounds so far (Stan-like growing windows)
         window = np.concatenate(history[len(history) // 2:])
-        learnt = learn_proposal(window, threshold, mask, factor)
+        learnt = learn_proposal(window, np.asarray(target.mode_fn(window)), target.modes, mask, factor)
         # a mode found earlier stays a jump target (with its last mean) when no chain is in it now
         kept = proposal.known & ~learnt.known
         proposal = learnt._replace(means=np.where(kept[:, None], proposal.means, learnt.means),
@@ -384,8 +367,8 @@ def sample(logdensity_fn: Callable, prior, config: SamplerConfig | None = None,
     positions = positions.swapaxes(0, 1)[:, :config.steps]
     logdensity = logdensity.swapaxes(0, 1)[:, :config.steps]
     moves = moves.swapaxes(0, 1)[:, :config.steps]
-    return SamplerRun(positions, logdensity, (moves[..., 0] + moves[..., 2]) > 0, proposal._asdict(), tuning, asdict(config),
-                      move_statistics(moves))
+    return SamplerRun(positions, logdensity, (moves[..., 0] + moves[..., 2]) > 0, proposal._asdict(), tuning,
+                      asdict(config), move_statistics(moves))
 
 
 def _acceptance_correction(acceptance: float, target: float, tolerance: float = 0.05) -> float:

@@ -16,11 +16,12 @@ from typing import Callable
 import numpy as np
 
 from ..fit.model import FittedModel
-from ..fit.priors import SLICES, Prior, render_params
+from ..fit.priors import Prior
 from ..render.contract import OBJECT_SHAPES
+from ..space import DIMENSION, HYPOTHESES, OBJECT_KEYS, SLICES, render_params
 from .likelihood import LikelihoodConfig, observe, score
+from .mcmc import Target
 
-OBJECT_KEYS = ("shift", "theta", "scale", "kappa", "colour", "ambient", "diffuse", "specular", "shininess")
 RENDERERS = ("mitsuba", "jax")
 
 
@@ -148,6 +149,48 @@ class PosteriorCore:
     def logdensity(self, z, observation):
         """log p(z) + log p(I | z) of one position z (15,) (JAX; vmap for many)."""
         return self.prior.log_prob(z) + self.log_likelihood(z, observation)
+
+    def target(self, material_gibbs: bool = True) -> Target:
+        """The sampler's view of this posterior: log density, prior draws, the discrete hypothesis
+        of a point as its mode, the symmetry move after every walk and, with ``material_gibbs``,
+        the material update after every step (the walk then leaves the materials to it)."""
+        mask = np.ones(DIMENSION, np.float32)
+        if material_gibbs:
+            for name in ("colour", "ambient", "diffuse", "specular"):
+                mask[SLICES[name]] = 0.0
+        return Target(self.logdensity, self.prior.sample, self.prior.hypothesis, len(HYPOTHESES),
+                      walk_move=self.symmetry_move, step_move=self.material_move if material_gibbs else None,
+                      walk_mask=tuple(mask.tolist()))
+
+    def symmetry_move(self, key, state):
+        """An MH move over the primitives' exact symmetries; no render.
+
+        Turn the object by 90 degrees (swapping its x and y half-extents), or by 180
+        degrees. Every primitive (box, ellipsoid, elliptic cylinder) looks exactly the
+        same after it, so the likelihood does not change; the move is accepted with the
+        MH ratio of the yaw prior. Without it, chains stay in one of the four
+        equivalent yaw modes and R-hat never settles."""
+        import jax
+        import jax.numpy as jnp
+
+        t = SLICES["theta"].start
+        sx, sy = SLICES["scale"].start, SLICES["scale"].start + 1
+        turns = jnp.array([np.pi / 2, np.pi, -np.pi / 2])
+        k_choice, k_accept = jax.random.split(key)
+        choice = jax.random.randint(k_choice, (), 0, 3)
+        z = state.position
+        theta = -jnp.pi + 2 * jnp.pi * jax.nn.sigmoid(z[t])
+        turned = jnp.mod(theta + turns[choice] + jnp.pi, 2 * jnp.pi) - jnp.pi
+        u = jnp.clip((turned + jnp.pi) / (2 * jnp.pi), 1e-7, 1 - 1e-7)
+        new = z.at[t].set(jnp.log(u) - jnp.log1p(-u))
+        swapped = new.at[sx].set(z[sy]).at[sy].set(z[sx])
+        new = jnp.where(choice == 1, new, swapped)
+        # log pi(z') - log pi(z) + log|det dz'/dz| reduces to the yaw prior's ratio
+        log_ratio = self.prior.config.theta_concentration * (jnp.cos(turned) - jnp.cos(theta))
+        accept = jnp.log(jax.random.uniform(k_accept)) < log_ratio
+        # the log joint changes only through the prior's yaw term (likelihood and scale prior are invariant)
+        new_logdensity = state.logdensity + self.prior.log_prob(new) - self.prior.log_prob(z)
+        return type(state)(jnp.where(accept, new, z), jnp.where(accept, new_logdensity, state.logdensity))
 
     def material_move(self, key, state, observation):
         """Metropolis-within-Gibbs update of the materials of one chain's state: colour, then (k_a, k_d, k_s).

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import InferenceError
 from ..fit.model import FittedModel
-from ..fit.priors import DIMENSION, SLICES
+from ..space import coordinate_names
 from ..shapes import SHAPES
 from .likelihood import LikelihoodConfig
 from .mcmc import SamplerConfig, SamplerRun, sample
@@ -100,7 +100,7 @@ def to_inference_data(model: PosteriorModel, run: SamplerRun, observed: np.ndarr
     dims = {"shift": ["axis_xy"], "scale": ["axis_xyz"], "colour": ["rgb"], "class_probabilities": ["shape"],
             "z": ["unconstrained"]}
     coords = {"axis_xy": ["x", "y"], "axis_xyz": ["x", "y", "z"], "rgb": ["r", "g", "b"], "shape": list(SHAPES),
-              "unconstrained": [f"{name}_{i}" for name, s in SLICES.items() for i in range(s.stop - s.start)]}
+              "unconstrained": coordinate_names()}
     idata = az.from_dict(
         posterior=posterior,
         log_likelihood={"image": run.logdensity - shape(log_prior)},
@@ -123,14 +123,7 @@ def infer_image(fitted: FittedModel, observed: np.ndarray, likelihood: Likelihoo
     sampler = sampler or SamplerConfig()
     model = PosteriorModel(fitted, observed, likelihood, renderer)
     start = time.perf_counter()
-    gibbs = sampler.material_gibbs
-    walk_mask = np.ones(DIMENSION, np.float32)
-    for name in ("colour", "ambient", "diffuse", "specular"):
-        walk_mask[SLICES[name]] = 0.0 if gibbs else 1.0
-    core = model.core
-    run = sample(core.logdensity, model.prior, sampler, progress,
-                 extra_move=core.material_move if gibbs else None, walk_mask=walk_mask,
-                 observation=model.observation)
+    run = sample(model.core.target(sampler.material_gibbs), sampler, progress, observation=model.observation)
     seconds = time.perf_counter() - start
     info = {"model": str(fitted.root), "likelihood": likelihood.kind, "sigma": likelihood.sigma,
             "renderer": renderer, "sampler": run.config, "tuning": run.tuning, "seconds": seconds,

@@ -8,7 +8,7 @@ import numpy as np
 
 from .. import plots
 from ..fit.model import FittedModel
-from ..fit.priors import render_params
+from ..space import render_params
 from .posterior import Posterior
 
 
