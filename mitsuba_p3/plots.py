@@ -240,3 +240,27 @@ def trace_plot(idata, path: str | Path, variables: Sequence[str] = ("shift", "sc
     fig = np.asarray(axes).ravel()[0].figure
     fig.tight_layout()
     return save_figure(fig, path)
+
+
+def reliability_diagram(path: str | Path, results: dict, settings: Sequence[str]) -> Path:
+    """Accuracy against confidence per few-shot setting, one line per model (``results``: model ->
+    its evaluation results, whose accuracy per setting carries the reliability bins)."""
+    plt = _pyplot()
+    settings = [name for name in settings if any(name in r["accuracy"] for r in results.values())]
+    figure, axes = plt.subplots(1, len(settings), figsize=(3.2 * len(settings), 3.2), squeeze=False)
+    for ax, name in zip(axes[0], settings):
+        ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--")
+        for likelihood, result in results.items():
+            acc = result["accuracy"].get(name)
+            if not acc:
+                continue
+            bins = [b for b in acc["reliability"] if b[2] > 0]
+            ax.plot([b[0] for b in bins], [b[1] for b in bins], marker="o",
+                    label=f"{likelihood.upper()} (ECE {acc['ece']:.3f})")
+        ax.set_title(name)
+        ax.set_xlabel("confidence")
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1)
+        ax.legend(fontsize=7, loc="upper left")
+    axes[0][0].set_ylabel("accuracy")
+    return save_figure(figure, path)

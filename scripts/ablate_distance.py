@@ -19,8 +19,8 @@ import numpy as np
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.concepts import PROPERTIES, DistanceConfig, parse_properties
 from mitsuba_p3.errors import MitsubaP3Error
-from mitsuba_p3.evaluate import (SETTINGS, CachedPosterior, EvaluationConfig, classify_episodes, markdown_table,
-                                 posterior_path)
+from mitsuba_p3.evaluate import (CachedPosterior, EvaluationConfig, classify_episodes, feasible_settings,
+                                 markdown_table, posterior_path, setting_name)
 
 
 def main() -> None:
@@ -46,7 +46,7 @@ def main() -> None:
         subsets += [(f"all but {p}", tuple(q for q in PROPERTIES if q != p)) for p in PROPERTIES]
         subsets += [(f"{p} only", (p,)) for p in PROPERTIES]
     fewest = min(len(dataset.shots_of(c)) for c in dataset.classes("test"))
-    settings = [(n, k) for n, k in SETTINGS if n <= len(dataset.classes("test")) and k + 1 <= fewest]
+    settings = feasible_settings(len(dataset.classes("test")), fewest)
     rows = []
     for label, properties in subsets:
         config = EvaluationConfig(episodes=args.episodes, distance=replace(distance, properties=properties))
@@ -57,7 +57,7 @@ def main() -> None:
         rows.append([label] + cells)
         print(f"{label}: {' / '.join(cells)}", flush=True)
     print()
-    print(markdown_table(["distance terms"] + [f"{n}-way {k}-shot" for n, k in settings], rows))
+    print(markdown_table(["distance terms"] + [setting_name(n, k) for n, k in settings], rows))
 
 
 if __name__ == "__main__":

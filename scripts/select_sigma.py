@@ -22,16 +22,15 @@ import argparse
 import csv
 import json
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
-from mitsuba_p3.evaluate import (CachedPosterior, EvaluationConfig, check_run, compute_posteriors, one_shot_accuracy,
-                                 posterior_path)
-from mitsuba_p3.infer.mcmc import SamplerConfig
-
-PRESET = dict(chains=8, steps=200, burn_in=30, tune_rounds=3, tune_steps=40)  # as reproduce_tables.py
+from mitsuba_p3.errors import MitsubaP3Error
+from mitsuba_p3.evaluate import (PRESET, CachedPosterior, EvaluationConfig, check_run, compute_posteriors,
+                                 one_shot_accuracy, posterior_path)
 WAYS = (5, 10)
 
 
@@ -49,9 +48,11 @@ def main() -> None:
     args = parser.parse_args()
     if args.shots < 2:
         parser.error("--shots must be at least 2 (a support and a query per class)")
-    sigmas = [float(s) for s in args.sigmas.split(",")]
-    if any(not s > 0 for s in sigmas):
-        parser.error("every sigma must be positive")
+    try:   # every setting checked before any posterior is sampled
+        configs = {float(s): EvaluationConfig(likelihoods=("p3",), sigma=float(s), jobs=args.jobs,
+                                              sampler=replace(PRESET, seed=args.seed)) for s in args.sigmas.split(",")}
+    except (ValueError, MitsubaP3Error) as error:
+        parser.error(str(error))
 
     dataset = load_dataset(args.dataset)
     classes = dataset.classes("train")
@@ -61,10 +62,8 @@ def main() -> None:
     if min(len(v) for v in shots.values()) < 2:
         parser.error(f"every train class of {args.dataset} needs at least 2 shots")
     rows = []
-    for sigma in sigmas:
+    for sigma, config in configs.items():
         run_dir = args.out / f"sigma-{sigma:g}"
-        config = EvaluationConfig(likelihoods=("p3",), sigma=sigma, jobs=args.jobs,
-                                  sampler=SamplerConfig(**PRESET, seed=args.seed))
         check_run(run_dir, dataset, args.model, config)
         compute_posteriors(dataset, args.model, run_dir, config, shots=[i for v in shots.values() for i in v],
                            progress=lambda done, total: print(f"sigma {sigma:g}: posteriors {done}/{total}",

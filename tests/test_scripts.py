@@ -1,23 +1,15 @@
-"""The reproduction scripts' own logic (their heavy parts are the tested library calls)."""
+"""The logic of choosing knobs on train classes and of the paper-layout tables (the heavy parts are the
+tested library calls)."""
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from mitsuba_p3 import reproduce as tables
 from mitsuba_p3.concepts import CONTINUOUS, DistanceConfig, ProtoProgram
-
-SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
-
-
-def load_script(name: str):
-    spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from mitsuba_p3.evaluate import one_shot_accuracy
 
 
 def program(rng, centre: float, spread: float, n: int = 200) -> ProtoProgram:
@@ -30,16 +22,14 @@ def program(rng, centre: float, spread: float, n: int = 200) -> ProtoProgram:
 @pytest.mark.parametrize("spread, expect_perfect", [(0.01, True), (10.0, False)])
 def test_one_shot_accuracy_separates_distinct_classes_only(spread, expect_perfect):
     """Well separated classes are always told apart; classes lost in their own noise are not."""
-    select = load_script("select_sigma")
     rng = np.random.default_rng(0)
     programs = {f"c{i}": [program(rng, float(i), spread), program(rng, float(i), spread)] for i in range(12)}
-    accuracy = select.one_shot_accuracy(programs, 5, 20, 0, DistanceConfig(samples=100))
+    accuracy = one_shot_accuracy(programs, 5, 20, 0, DistanceConfig(samples=100))
     assert (accuracy == 1.0) == expect_perfect
     assert 0.0 <= accuracy <= 1.0
 
 
 def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_path):
-    tables = load_script("reproduce_tables")
     for variant, sigma in (("fsclvr", None), ("dark", 0.1), ("ood", 0.05)):
         assert tables.parse_run_name(tables.run_name(variant, sigma)) == (variant, sigma)
     assert tables.parse_run_name("scratch") is None and tables.parse_run_name("fsclvr-sigmaX") is None
@@ -56,7 +46,7 @@ def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_
     found = tables.collect(tmp_path)
     assert set(found) == {("fsclvr", None, None), ("fsclvr", 0.1, None), ("fsclvr", None, "colour+class"),
                           ("fsclvr", 0.1, "colour")}
-    tables.write_tables(tmp_path, found)
+    tables.write_paper_tables(tmp_path, found)
     lines = (tmp_path / "accuracy.md").read_text().splitlines()
     assert any(line.startswith("| P3 | this project | 50.0/50.0/50.0/50.0 |") for line in lines)
     assert any(line.startswith("| P3 (sigma 0.1) | this project | 90.0/90.0/90.0/90.0 |") for line in lines)

@@ -18,7 +18,6 @@ benchmarks are 4:3; cropping would cut off objects near the sides).
 """
 from __future__ import annotations
 
-import json
 import pickle
 from dataclasses import asdict, dataclass, field
 from functools import partial
@@ -28,7 +27,7 @@ from typing import Callable
 import numpy as np
 
 from ..errors import BaselineError
-from ..files import atomic_write
+from ..files import atomic_json, atomic_write
 from .methods import MAML, METHODS
 
 CHECKPOINT_FORMAT = "mitsuba-p3-baseline"
@@ -225,7 +224,7 @@ def evaluate_baseline(model_dir: str | Path, dataset_dir: str | Path, run_dir: s
 
     from ..benchmarks.dataset import load_dataset
     from ..benchmarks.episodes import sample_episodes
-    from ..evaluate import SETTINGS, interval95
+    from ..evaluate.metrics import feasible_settings, interval95, setting_name
 
     state = Checkpoint.load(model_dir)
     config = TrainConfig(**state.config)
@@ -235,7 +234,7 @@ def evaluate_baseline(model_dir: str | Path, dataset_dir: str | Path, run_dir: s
     by_index = {shot.index: images[shot.class_name][n] for name in dataset.classes("test")
                 for n, shot in enumerate(dataset.shots_of(name))}
     fewest = min(len(v) for v in images.values())
-    settings = [(n, k) for n, k in SETTINGS if n <= len(images) and k + 1 <= fewest]
+    settings = feasible_settings(len(images), fewest)
     predict = jax.jit(model.predict, static_argnums=4)
     accuracy, done = {}, 0
     for n_way, k_shot in settings:
@@ -249,9 +248,8 @@ def evaluate_baseline(model_dir: str | Path, dataset_dir: str | Path, run_dir: s
             if progress:
                 progress(done, episodes * len(settings))
         mean, half = interval95(scores)
-        accuracy[f"{n_way}-way {k_shot}-shot"] = {"mean": mean, "half_width": half, "episodes": episodes}
+        accuracy[setting_name(n_way, k_shot)] = {"mean": mean, "half_width": half, "episodes": episodes}
     result = {"model": config.label, "trained": state.config, "iterations": state.iteration, "accuracy": accuracy}
     target = Path(run_dir) / "baselines" / f"{config.method}-{config.resolution}.json"
-    target.parent.mkdir(parents=True, exist_ok=True)
-    target.write_text(json.dumps(result, indent=1))
+    atomic_json(target, result)
     return result

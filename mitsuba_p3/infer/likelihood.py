@@ -29,14 +29,14 @@ class LikelihoodConfig:
     neural_weight: float = 0.05
 
     def __post_init__(self):
+        from ..errors import ConfigError
+
         if self.kind not in LIKELIHOODS:
-            from ..errors import MitsubaP3Error
-
-            raise MitsubaP3Error(f"unknown likelihood {self.kind!r}; choose p3 or np3")
-        if not self.sigma > 0:
-            from ..errors import MitsubaP3Error
-
-            raise MitsubaP3Error(f"the colour likelihood's sigma must be positive; got {self.sigma}")
+            raise ConfigError(f"unknown likelihood {self.kind!r}; choose p3 or np3")
+        if not (isinstance(self.sigma, (int, float)) and np.isfinite(self.sigma) and self.sigma > 0):
+            raise ConfigError(f"the colour likelihood's sigma must be a positive number; got {self.sigma}")
+        if not (np.isfinite(self.neural_weight) and self.neural_weight >= 0):
+            raise ConfigError(f"the neural weight must be >= 0; got {self.neural_weight}")
 
 
 def colour_log_likelihood(observed, renders, sigma: float):

@@ -17,12 +17,11 @@ import numpy as np
 
 from ..fit.model import FittedModel
 from ..fit.priors import Prior
+from ..render import RENDERERS
 from ..render.contract import OBJECT_SHAPES
 from ..space import DIMENSION, HYPOTHESES, OBJECT_KEYS, SLICES, render_params
 from .likelihood import LikelihoodConfig, observe, score
 from .mcmc import Target
-
-RENDERERS = ("mitsuba", "jax")
 
 
 def contract_params(prior: Prior, z) -> dict:

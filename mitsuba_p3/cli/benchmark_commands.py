@@ -1,0 +1,72 @@
+"""Benchmark commands: generate, check and look at data sets."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from .app import benchmark_app, parse_resolution, progress_bar
+
+
+@benchmark_app.command("generate")
+def benchmark_generate(
+    variant: str = typer.Argument(..., help="fsclvr, dark, room or ood."),
+    out: Path = typer.Option(..., "--out", help="Data-set folder to write (resumes if it exists)."),
+    seed: int = typer.Option(0, help="Seed: the same seed gives the same labels and images."),
+    size: str = typer.Option("full", help="full (BENCHMARK.md counts) or small (built-in example)."),
+    resolution: Optional[str] = typer.Option(None, help="HxW (default: 480x640 full, 120x160 small)."),
+    spp: Optional[int] = typer.Option(None, help="Samples per pixel (default: the world XML's; 32 small)."),
+) -> None:
+    """Render a benchmark with Mitsuba's path tracer (world: scenes/benchmarks/VARIANT.xml)."""
+    import time
+
+    from ..benchmarks.generate import generate
+
+    height, width = parse_resolution(resolution)
+    bar, update = progress_bar(f"{variant} ({size})")
+    start = time.perf_counter()
+    counts = {}
+
+    def track(done: int, total: int) -> None:
+        counts.setdefault("first", done)
+        counts["done"], counts["total"] = done, total
+        update(done, total)
+
+    with bar:
+        labels = generate(variant, out, seed=seed, size=size,
+                          resolution=(height, width) if height else None, spp=spp, progress=track)
+    rendered = counts["done"] - counts["first"]
+    seconds = time.perf_counter() - start
+    per_image = f", {seconds / rendered:.2f} s/image" if rendered else ""
+    typer.echo(f"wrote {labels.parent}: {counts['total']} images ({rendered} rendered now, "
+               f"{counts['first']} already there) in {seconds:.1f} s{per_image}")
+
+
+@benchmark_app.command("check")
+def benchmark_check(
+    folder: Path = typer.Argument(..., help="Data-set folder."),
+) -> None:
+    """Validate a data-set folder and print a summary (JSON)."""
+    from ..benchmarks.dataset import load_dataset
+
+    dataset = load_dataset(folder)
+    typer.echo(json.dumps({"folder": str(folder), "variant": dataset.variant, "images": len(dataset),
+                           "train_classes": len(dataset.classes("train")),
+                           "test_classes": len(dataset.classes("test"))}, indent=2))
+
+
+@benchmark_app.command("show")
+def benchmark_show(
+    folder: Path = typer.Argument(..., help="Data-set folder."),
+    output: Path = typer.Option(Path("sheet.png"), "-o", "--output", help="Contact sheet PNG."),
+    resolution: str = typer.Option("240x320", help="HxW of each thumbnail."),
+) -> None:
+    """Contact sheet: one labelled shot per class."""
+    from ..benchmarks.dataset import load_dataset
+    from ..plots import contact_sheet
+
+    dataset = load_dataset(folder, resolution=parse_resolution(resolution))
+    contact_sheet(dataset, output)
+    typer.echo(f"wrote {output}")

@@ -1,0 +1,170 @@
+"""The pipeline's commands: fit a model, infer one image's posterior, evaluate a benchmark, reproduce the tables."""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from ..evaluate.config import PRESET
+from ..infer.mcmc import SamplerConfig
+from .app import app, phase_progress_bar, progress_bar
+
+
+@app.command()
+def fit(
+    dataset_dir: Path = typer.Argument(..., help="Benchmark folder (its train split is used)."),
+    out: Path = typer.Option(..., "--out", help="Fitted-model folder to write."),
+    stages: str = typer.Option("scene,features,priors", help="Comma-separated stages to (re-)run."),
+    epochs: int = typer.Option(7, help="Scene optimisation epochs."),
+    material_passes: int = typer.Option(5, help="Material-only passes per epoch."),
+    global_passes: int = typer.Option(5, help="Global-only passes per epoch."),
+    learning_rate: float = typer.Option(0.01, help="Adam learning rate."),
+    channels: int = typer.Option(3, help="VGG16 channels to select."),
+    shadows: bool = typer.Option(True, "--shadows/--no-shadows", help="Hard shadows while fitting."),
+) -> None:
+    """Training stage: scene optimisation, feature selection and priors -> a fitted-model folder."""
+    from ..fit.model import fit_model
+    from ..fit.scene_opt import SceneOptConfig
+
+    config = SceneOptConfig(epochs=epochs, material_passes=material_passes, global_passes=global_passes,
+                            learning_rate=learning_rate, shadows=shadows)
+    bar, update = progress_bar("fit")
+    tasks = {}
+
+    def track(stage: str, done: int, total: int, loss: float) -> None:
+        if stage not in tasks:
+            tasks[stage] = bar.add_task(stage, total=total)
+        description = f"{stage} (loss {loss:.5f})" if stage == "scene" else stage
+        bar.update(tasks[stage], completed=done, total=total, description=description)
+
+    with bar:
+        bar.remove_task(bar.task_ids[0])
+        model = fit_model(dataset_dir, out, [s.strip() for s in stages.split(",") if s.strip()],
+                          scene_config=config, channels=channels, progress=track)
+    summary = {stage: {k: v for k, v in figures.items() if k != "config"}
+               for stage, figures in model.info["stages"].items()}
+    typer.echo(json.dumps({"model": str(out), **summary}, indent=2))
+
+
+@app.command()
+def infer(
+    image: Path = typer.Argument(..., help="Observed image (PNG/JPEG, or .npy floats in [0, 1])."),
+    model: Path = typer.Option(..., "--model", help="Fitted-model folder (mitsuba-p3 fit)."),
+    output: Path = typer.Option(..., "-o", "--output", help="Folder for the posterior and its figures."),
+    chains: int = typer.Option(SamplerConfig.chains, help="MH chains, run in one batched render per step."),
+    steps: int = typer.Option(SamplerConfig.steps, help="Kept draws per chain."),
+    burn_in: int = typer.Option(SamplerConfig.burn_in, help="Burn-in steps after tuning."),
+    tune_rounds: int = typer.Option(SamplerConfig.tune_rounds, help="Tuning rounds."),
+    tune_steps: int = typer.Option(SamplerConfig.tune_steps, help="Steps per tuning round."),
+    likelihood: str = typer.Option("np3", help="p3 (colour) or np3 (colour + neural)."),
+    sigma: Optional[float] = typer.Option(None, help="Colour-likelihood sigma (default 1.0; 0.35 for dark)."),
+    renderer: str = typer.Option("mitsuba", help="mitsuba (pure_callback) or jax (native tracer)."),
+    seed: int = typer.Option(0, help="Sampler seed."),
+) -> None:
+    """Sample the posterior over an image's object (pose, size, class, material); write it and figures."""
+    from ..fit.model import FittedModel
+    from ..images import load_observation
+    from ..infer.posterior import default_likelihood, infer_image
+    from ..infer.report import write_report
+
+    fitted = FittedModel(model)
+    observed = load_observation(image)
+    config = SamplerConfig(chains=chains, steps=steps, burn_in=burn_in, tune_rounds=tune_rounds,
+                           tune_steps=tune_steps, seed=seed)
+    bar, track = phase_progress_bar("sampling")
+
+    with bar:
+        posterior = infer_image(fitted, observed, default_likelihood(fitted, likelihood, sigma), config,
+                                renderer=renderer, progress=track, attrs={"image": str(image)})
+    written = write_report(posterior, fitted, output, renderer=renderer)
+    typer.echo(json.dumps(written, indent=2))
+
+
+@app.command()
+def evaluate(
+    dataset: Path = typer.Argument(..., help="Benchmark folder (mitsuba-p3 benchmark generate)."),
+    model: Path = typer.Option(..., "--model", help="Fitted-model folder (mitsuba-p3 fit)."),
+    out: Path = typer.Option(..., "--out", help="Run folder: cached posteriors and tables (resumes)."),
+    likelihoods: str = typer.Option("p3,np3", help="Comma-separated: p3, np3."),
+    episodes: int = typer.Option(100, help="Episodes per N-way K-shot setting."),
+    jobs: int = typer.Option(1, help="Parallel posterior jobs (joblib)."),
+    dask: Optional[str] = typer.Option(None, "--dask", help="Dask scheduler address: run the jobs there."),
+    chains: int = typer.Option(SamplerConfig.chains, help="MH chains per posterior."),
+    steps: int = typer.Option(SamplerConfig.steps, help="Kept draws per chain."),
+    burn_in: int = typer.Option(SamplerConfig.burn_in, help="Burn-in steps after tuning."),
+    tune_rounds: int = typer.Option(SamplerConfig.tune_rounds, help="Tuning rounds."),
+    tune_steps: int = typer.Option(SamplerConfig.tune_steps, help="Steps per tuning round."),
+    sigma: Optional[float] = typer.Option(None, help="Colour-likelihood sigma (default: the paper's, "
+                                                     "1.0; 0.35 for a dark-fitted model)."),
+    distance: str = typer.Option("all", help="Distance terms: 'all' (the paper's) or some joined by '+', e.g. "
+                                             "colour+class; another distance reuses the run's posteriors and "
+                                             "writes its tables to RUN/distance-TERMS."),
+    renderer: str = typer.Option("mitsuba", help="mitsuba (pure_callback) or jax (native tracer)."),
+    seed: int = typer.Option(0, help="Sampler seed."),
+) -> None:
+    """Few-shot accuracy, calibration and pose error (ADI) of P3/NP3 on a benchmark's test split."""
+    from ..concepts import DistanceConfig, parse_properties
+    from ..evaluate import EvaluationConfig, tables_dir
+    from ..evaluate import evaluate as run_evaluation
+
+    chosen = tuple(k.strip() for k in likelihoods.split(",") if k.strip())
+    config = EvaluationConfig(likelihoods=chosen, sigma=sigma, renderer=renderer, episodes=episodes, jobs=jobs,
+                              dask=dask, distance=DistanceConfig(properties=parse_properties(distance)),
+                              sampler=SamplerConfig(chains=chains, steps=steps, burn_in=burn_in,
+                                                    tune_rounds=tune_rounds, tune_steps=tune_steps, seed=seed))
+    bar, track = phase_progress_bar("posteriors")
+
+    with bar:
+        results = run_evaluation(dataset, model, out, config, progress=track)
+    summary = {k: {"accuracy": {s: round(100 * a["mean"], 1) for s, a in r["accuracy"].items()},
+                   "mean_adi_m": round(r["adi"]["mean"], 4)} for k, r in results.items()}
+    tables = tables_dir(out, config.distance)
+    typer.echo((tables / "accuracy.md").read_text() + "\n" + (tables / "adi.md").read_text())
+    typer.echo(json.dumps({"run": str(out), "tables": str(tables), **summary}, indent=2))
+
+
+@app.command()
+def reproduce(
+    data: Path = typer.Option(Path("data"), help="Folder of benchmark folders (data/fsclvr, ...) and data/models; "
+                                                 "what is missing is generated and fitted."),
+    out: Path = typer.Option(Path("results"), help="Tables, timing log and one run folder per benchmark (resumes)."),
+    benchmarks: str = typer.Option("fsclvr,room,dark,ood", help="Comma-separated benchmarks."),
+    likelihoods: str = typer.Option("p3,np3", help="Comma-separated: p3, np3."),
+    episodes: int = typer.Option(100, help="Episodes per N-way K-shot setting."),
+    jobs: int = typer.Option(len(os.sched_getaffinity(0)), help="Parallel posterior workers (default: one per core)."),
+    chains: int = typer.Option(PRESET.chains, help="MH chains per posterior (the evaluation preset)."),
+    steps: int = typer.Option(PRESET.steps, help="Kept draws per chain."),
+    burn_in: int = typer.Option(PRESET.burn_in, help="Burn-in steps after tuning."),
+    tune_rounds: int = typer.Option(PRESET.tune_rounds, help="Tuning rounds."),
+    tune_steps: int = typer.Option(PRESET.tune_steps, help="Steps per tuning round."),
+    sigma: Optional[float] = typer.Option(None, help="Colour-likelihood sigma (default: the paper's); runs go to "
+                                                     "runs/V-sigmaS."),
+    distance: str = typer.Option("all", help="Distance terms: 'all' or e.g. colour+class (tables in "
+                                             "runs/V/distance-TERMS; the posteriors are shared)."),
+) -> None:
+    """Generate, fit and evaluate every benchmark, then write the paper's accuracy and ADI tables."""
+    import time
+    from dataclasses import replace
+
+    from ..concepts import DistanceConfig, parse_properties
+    from ..evaluate import EvaluationConfig
+    from ..reproduce import ReproduceConfig
+    from ..reproduce import reproduce as run_reproduction
+
+    sampler = replace(PRESET, chains=chains, steps=steps, burn_in=burn_in, tune_rounds=tune_rounds,
+                      tune_steps=tune_steps)
+    evaluation = EvaluationConfig(likelihoods=tuple(k.strip() for k in likelihoods.split(",") if k.strip()),
+                                  sigma=sigma, sampler=sampler, episodes=episodes, jobs=jobs,
+                                  distance=DistanceConfig(properties=parse_properties(distance)))
+    config = ReproduceConfig(benchmarks=tuple(b.strip() for b in benchmarks.split(",") if b.strip()),
+                             evaluation=evaluation)
+    start = time.perf_counter()
+    bar, track = phase_progress_bar("reproduce")
+    with bar:
+        minutes = run_reproduction(data, out, config, progress=track)
+    typer.echo((out / "accuracy.md").read_text() + "\n" + (out / "adi.md").read_text())
+    typer.echo(json.dumps({"out": str(out), "minutes": {k: round(v, 1) for k, v in minutes.items()},
+                           "total_minutes": round((time.perf_counter() - start) / 60, 1)}, indent=2))

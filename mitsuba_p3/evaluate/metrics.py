@@ -1,0 +1,108 @@
+"""Scores of an evaluation: few-shot settings, accuracies with intervals, calibration, pose errors.
+
+Shared by every model evaluated on a benchmark's episodes (P3, NP3 and the
+neural baselines), so their numbers are computed the same way.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..benchmarks.dataset import Dataset
+from ..benchmarks.episodes import sample_episodes
+from ..concepts import DistanceConfig, ProtoProgram, classify_many
+
+SETTINGS = ((5, 1), (5, 5), (10, 1), (10, 5))   # (N-way, K-shot), the paper's four
+
+
+def setting_name(n_way: int, k_shot: int) -> str:
+    """The key of a setting in every table: ``"5-way 1-shot"``."""
+    return f"{n_way}-way {k_shot}-shot"
+
+
+def feasible_settings(n_classes: int, fewest_shots: int, queries_per_class: int = 1) -> list[tuple[int, int]]:
+    """The settings of :data:`SETTINGS` that ``n_classes`` classes with at least ``fewest_shots``
+    images each can fill (K supports and the queries per class)."""
+    return [(n, k) for n, k in SETTINGS if n <= n_classes and k + queries_per_class <= fewest_shots]
+
+
+def interval95(values) -> tuple[float, float]:
+    """Mean and the half-width of its 95% normal-approximation interval."""
+    values = np.asarray(values, np.float64)
+    half = 1.96 * values.std(ddof=1) / np.sqrt(len(values)) if len(values) > 1 else float("nan")
+    return float(values.mean()), float(half)
+
+
+def expected_calibration_error(confidence: np.ndarray, correct: np.ndarray, bins: int = 10) -> tuple[float, list]:
+    """ECE over equal-width confidence bins, and the bins' (mean confidence, accuracy, count)."""
+    confidence, correct = np.asarray(confidence, float), np.asarray(correct, float)
+    edges = np.linspace(0.0, 1.0, bins + 1)
+    which = np.clip(np.digitize(confidence, edges[1:-1]), 0, bins - 1)
+    ece, table = 0.0, []
+    for b in range(bins):
+        members = which == b
+        if members.any():
+            gap = abs(correct[members].mean() - confidence[members].mean())
+            ece += members.mean() * gap
+            table.append((float(confidence[members].mean()), float(correct[members].mean()), int(members.sum())))
+        else:
+            table.append((float("nan"), float("nan"), 0))
+    return float(ece), table
+
+
+def classify_episodes(dataset: Dataset, cached: dict, n_way: int, k_shot: int, config) -> list[dict]:
+    """Predictions for every query of the setting's episodes (``cached``: image index -> an object
+    with a ``program``; ``config``: an :class:`~mitsuba_p3.evaluate.config.EvaluationConfig`)."""
+    rows = []
+    for number, episode in enumerate(sample_episodes(dataset, n_way, k_shot, config.episodes, config.episode_seed,
+                                                     config.queries_per_class)):
+        programs = [ProtoProgram.merge([cached[i].program for i in shots]) for shots in episode.support]
+        every = classify_many(programs, [cached[index].program for index, _ in episode.queries], config.distance)
+        for (index, truth), probabilities in zip(episode.queries, every):
+            rows.append({"n_way": n_way, "k_shot": k_shot, "episode": number, "query": index, "truth": truth,
+                         "predicted": int(np.argmax(probabilities)), "confidence": float(probabilities.max()),
+                         "p_true": float(probabilities[truth])})
+    return rows
+
+
+def one_shot_accuracy(programs: dict[str, list[ProtoProgram]], n_way: int, episodes: int, seed: int,
+                      config: DistanceConfig) -> float:
+    """Mean accuracy of seeded N-way 1-shot episodes over the classes of ``programs`` (class -> its
+    shots' programs, 2 or more): per chosen class one shot is the support, another the query. For
+    choices made on train classes (``scripts/select_sigma.py``, ``scripts/select_distance.py``)."""
+    rng = np.random.default_rng([seed, n_way])
+    names = sorted(programs)
+    correct = []
+    for _ in range(episodes):
+        chosen = [names[i] for i in rng.choice(len(names), size=n_way, replace=False)]
+        pairs = [rng.choice(len(programs[c]), size=2, replace=False) for c in chosen]
+        support = [programs[c][s] for c, (s, _) in zip(chosen, pairs)]
+        queries = [programs[c][q] for c, (_, q) in zip(chosen, pairs)]
+        probabilities = classify_many(support, queries, config)
+        correct += list(np.argmax(probabilities, axis=1) == np.arange(n_way))
+    return float(np.mean(correct))
+
+
+def pose_errors(dataset: Dataset, cached: dict) -> list[dict]:
+    """ADI of every image's posterior median position and modal yaw."""
+    from ..pose import adi
+
+    return [{"query": index, "class": dataset.shots[index].cls.name,
+             "adi": adi(dataset.shots[index], post.shift, post.yaw)} for index, post in cached.items()]
+
+
+def accuracy_of(rows: list[dict], episodes: int) -> dict:
+    """Accuracy of one setting's predictions: mean over episodes with its 95% interval, and the
+    calibration of the predicted class probabilities (ECE over 10 bins, the reliability bins)."""
+    per_episode = [np.mean([r["predicted"] == r["truth"] for r in rows if r["episode"] == e]) for e in range(episodes)]
+    mean, half = interval95(per_episode)
+    ece, bins = expected_calibration_error([r["confidence"] for r in rows], [r["predicted"] == r["truth"] for r in rows])
+    return {"mean": mean, "half_width": half, "episodes": episodes, "ece": ece, "reliability": bins}
+
+
+def pose_summary(errors: list[dict]) -> tuple[dict, dict]:
+    """Mean and median ADI per class and over all images."""
+    summarise = lambda values: {"mean": float(np.mean(values)), "median": float(np.median(values)),  # noqa: E731
+                                "images": len(values)}
+    per_class = {name: summarise([e["adi"] for e in errors if e["class"] == name])
+                 for name in sorted({e["class"] for e in errors})}
+    return per_class, summarise([e["adi"] for e in errors])

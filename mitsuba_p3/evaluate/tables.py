@@ -1,0 +1,78 @@
+"""The tables and figure of an evaluation run: accuracy and ADI as CSV and Markdown, a reliability plot."""
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+from ..concepts import PROPERTIES, DistanceConfig
+from .metrics import SETTINGS, setting_name
+
+
+def tables_dir(run_dir: Path, distance: DistanceConfig) -> Path:
+    """Where a run's tables for ``distance`` go: the run folder for the paper's distance (all
+    terms), ``RUN/distance-colour+class`` (say) for another, its terms in the order of
+    ``PROPERTIES`` (the distance is their sum); the posteriors are shared."""
+    terms = [p for p in PROPERTIES if p in distance.properties]
+    if tuple(terms) == PROPERTIES:
+        return Path(run_dir)
+    return Path(run_dir) / ("distance-" + "+".join(terms))
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows]) + "\n"
+
+
+def write_tables(run_dir: Path, results: dict, baselines_dir: Path | None = None) -> dict:
+    """accuracy / adi / calibration as CSV and markdown, and the reliability plot, in ``run_dir``;
+    baselines evaluated into ``baselines_dir`` (default ``run_dir``) join the accuracy table."""
+    from ..plots import reliability_diagram
+
+    settings = [setting_name(n, k) for n, k in SETTINGS]
+    header = ["model"] + settings
+    rows = []
+    for likelihood, result in results.items():
+        cells = []
+        for name in settings:
+            acc = result["accuracy"].get(name)
+            cells.append(f"{100 * acc['mean']:.1f} ± {100 * acc['half_width']:.1f}" if acc else "-")
+        rows.append([likelihood.upper()] + cells)
+    baselines = load_baselines(baselines_dir or run_dir)
+    for baseline in baselines:
+        rows.append([baseline["model"]] + [
+            f"{100 * a['mean']:.1f} ± {100 * a['half_width']:.1f}" if (a := baseline["accuracy"].get(name)) else "-"
+            for name in settings])
+    (run_dir / "accuracy.md").write_text(markdown_table(header, rows))
+    with open(run_dir / "accuracy.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["model", "setting", "accuracy", "half_width_95", "episodes", "ece"])
+        for likelihood, result in results.items():
+            for name, acc in result["accuracy"].items():
+                writer.writerow([likelihood, name, acc["mean"], acc["half_width"], acc["episodes"], acc["ece"]])
+        for baseline in baselines:
+            for name, acc in baseline["accuracy"].items():
+                writer.writerow([baseline["model"], name, acc["mean"], acc["half_width"], acc["episodes"], ""])
+
+    classes = sorted({c for result in results.values() for c in result["adi_per_class"]})
+    adi_rows = [[c] + [f"{result['adi_per_class'][c]['mean']:.4f} / {result['adi_per_class'][c]['median']:.4f}"
+                       for result in results.values()] for c in classes]
+    adi_rows.append(["**all**"] + [f"{r['adi']['mean']:.4f} / {r['adi']['median']:.4f}" for r in results.values()])
+    (run_dir / "adi.md").write_text(markdown_table(["class"] + [f"{k.upper()} mean / median (m)" for k in results],
+                                              adi_rows))
+    with open(run_dir / "adi.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["model", "class", "mean_adi_m", "median_adi_m", "images"])
+        for likelihood, result in results.items():
+            for c, v in result["adi_per_class"].items():
+                writer.writerow([likelihood, c, v["mean"], v["median"], v["images"]])
+            writer.writerow([likelihood, "all", result["adi"]["mean"], result["adi"]["median"],
+                             result["adi"]["images"]])
+    reliability_diagram(run_dir / "reliability.png", results, settings)
+    return {"accuracy": str(run_dir / "accuracy.md"), "adi": str(run_dir / "adi.md"),
+            "reliability": str(run_dir / "reliability.png")}
+
+
+def load_baselines(run_dir: Path) -> list[dict]:
+    """Baseline results evaluated on this run's episodes (``mitsuba-p3 baseline evaluate --out RUN``)."""
+    return [json.loads(p.read_text()) for p in sorted(Path(run_dir).glob("baselines/*.json"))]
