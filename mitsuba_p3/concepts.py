@@ -20,6 +20,10 @@ an unbiased estimator whose variance falls as 1/n (``tests/test_concepts.py``
 measures it). The class term is the exact KL of the categorical distributions,
 whose frequencies are smoothed by ``class_smoothing`` so that a class absent
 from one posterior does not make the distance infinite.
+
+Every density of the project speaks one vocabulary: ``log_prob(x)`` and
+``sample(rng, n)`` (:class:`GaussianKde`, :class:`ProtoProgram`, and the prior's
+:class:`~mitsuba_p3.fit.priors.GMM` and :class:`~mitsuba_p3.fit.priors.Prior`).
 """
 from __future__ import annotations
 
@@ -95,12 +99,12 @@ class GaussianKde:
         self._log_norm = (np.log(n) + 0.5 * d * np.log(2 * np.pi)
                           + np.sum(np.log(np.diag(self.cholesky))))
 
-    def logpdf(self, x: np.ndarray) -> np.ndarray:
+    def log_prob(self, x: np.ndarray) -> np.ndarray:
         """log density at the rows of ``x`` (m, d)."""
         z = np.asarray(x, np.float64).reshape(-1, self.points.shape[1]) @ self._whiten.T
         return np.asarray(_log_kernel_sum()(z.astype(np.float32), self._white_points), np.float64) - self._log_norm
 
-    def resample(self, n: int, rng: np.random.Generator) -> np.ndarray:
+    def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
         """n draws (n, d): a random kernel centre plus its Gaussian noise."""
         centres = self.points[rng.integers(len(self.points), size=n)]
         return centres + rng.standard_normal((n, self.points.shape[1])) @ self.cholesky.T
@@ -148,13 +152,12 @@ class ProtoProgram:
         """log density of the joint (independent properties) at ``values``: property -> (n, d) / (n,)."""
         total = 0.0
         for name in CONTINUOUS:
-            total = total + self.kde(name).logpdf(values[name])
+            total = total + self.kde(name).log_prob(values[name])
         return total + np.log(self.class_probabilities()[np.asarray(values["class"], int)])
 
-    def sample(self, n: int, seed: int = 0) -> dict:
+    def sample(self, rng: np.random.Generator, n: int) -> dict:
         """n draws of every property from the program's densities."""
-        rng = np.random.default_rng(seed)
-        out = {name: self.kde(name).resample(n, rng) for name in CONTINUOUS}
+        out = {name: self.kde(name).sample(rng, n) for name in CONTINUOUS}
         out["class"] = rng.choice(len(SHAPES), size=n, p=self.class_probabilities())
         return out
 
@@ -165,8 +168,8 @@ def _class_side(class_program: ProtoProgram, config: DistanceConfig) -> dict:
     side = {}
     for name in config.continuous:
         p = class_program.kde(name)
-        x = p.resample(config.samples, rng)
-        side[name] = (x, p.logpdf(x))
+        x = p.sample(rng, config.samples)
+        side[name] = (x, p.log_prob(x))
     side["class"] = class_program.class_probabilities(config.class_smoothing)
     return side
 
@@ -182,7 +185,7 @@ def _kl_matrix(sides: list[dict], image_programs: list[ProtoProgram], config: Di
     for name in config.continuous:
         x = np.concatenate([side[name][0] for side in sides])
         log_p = np.stack([side[name][1] for side in sides]).mean(axis=1)
-        log_q = np.stack([image.kde(name).logpdf(x).reshape(len(sides), n).mean(axis=1)
+        log_q = np.stack([image.kde(name).log_prob(x).reshape(len(sides), n).mean(axis=1)
                           for image in image_programs])
         terms[name] = log_p[None, :] - log_q
     if "class" in config.properties:

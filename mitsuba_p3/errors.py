@@ -44,3 +44,23 @@ class BaselineError(MitsubaP3Error):
 
 class ConfigError(MitsubaP3Error):
     """A configuration value is out of range; raised before any work starts."""
+
+
+def check_counts(config, least: dict[str, int], what: str = "") -> None:
+    """Raise :class:`ConfigError` unless each named field of ``config`` is a whole number >= its least value.
+
+    The message names the field as its command-line flag (``burn_in`` -> ``burn-in``)."""
+    for name, minimum in least.items():
+        value = getattr(config, name)
+        if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+            raise ConfigError(f"{what}{name.replace('_', '-')} must be a whole number >= {minimum}; got {value!r}")
+
+
+def check_positive(config, names: tuple[str, ...], what: str = "") -> None:
+    """Raise :class:`ConfigError` unless each named field of ``config`` is a finite number > 0."""
+    import math
+
+    for name in names:
+        value = getattr(config, name)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+            raise ConfigError(f"{what}{name.replace('_', '-')} must be a positive number; got {value!r}")

@@ -26,8 +26,8 @@ def test_kl_estimate_matches_gaussians_and_its_variance_falls_with_samples():
     for n in (100, 1600):
         values = []
         for seed in range(20):
-            x = p.kde("x").resample(n, np.random.default_rng(seed))
-            values.append(np.mean(p.kde("x").logpdf(x) - q.kde("x").logpdf(x)))
+            x = p.kde("x").sample(np.random.default_rng(seed), n)
+            values.append(np.mean(p.kde("x").log_prob(x) - q.kde("x").log_prob(x)))
         estimates[n] = np.array(values)
     assert estimates[1600].mean() == pytest.approx(0.5 * 1 / (1 + 4000 ** -0.4), abs=0.05)
     ratio = estimates[100].std() / estimates[1600].std()
@@ -42,11 +42,11 @@ def test_kde_density_matches_scipy_and_integrates_its_samples():
     for d in (1, 3):
         points = rng.normal(size=(300, d)) @ np.triu(np.ones((d, d)))
         x = rng.normal(size=(50, d)) * 2
-        np.testing.assert_allclose(GaussianKde(points).logpdf(x), gaussian_kde(points.T).logpdf(x.T), rtol=1e-5)
-        draws = GaussianKde(points).resample(20000, rng)
+        np.testing.assert_allclose(GaussianKde(points).log_prob(x), gaussian_kde(points.T).logpdf(x.T), rtol=1e-5)
+        draws = GaussianKde(points).sample(rng, 20000)
         np.testing.assert_allclose(draws.mean(axis=0), points.mean(axis=0), atol=0.06 * d)
     constant = GaussianKde(np.full((100, 1), 0.3))            # a property held fixed by its prior
-    assert np.isfinite(constant.logpdf(np.array([[0.3]]))).all()
+    assert np.isfinite(constant.log_prob(np.array([[0.3]]))).all()
 
 
 def test_distance_is_zero_for_itself_and_grows_with_difference():
@@ -82,7 +82,7 @@ def test_merge_sample_log_prob_and_classify():
     shots = [_program(rng, shift=0.5, n=400) for _ in range(3)]
     merged = ProtoProgram.merge(shots)
     assert len(merged.samples["colour"]) == 1200
-    draws = merged.sample(50, seed=0)
+    draws = merged.sample(np.random.default_rng(0), 50)
     assert draws["colour"].shape == (50, 3) and set(draws["class"]) <= {0, 1, 2}
     assert np.all(np.isfinite(merged.log_prob(draws)))
     classes = [merged, ProtoProgram.merge([_program(rng, shift=-0.5, n=400)])]

@@ -26,7 +26,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..errors import BaselineError
+from ..errors import BaselineError, check_counts, check_positive
 from ..files import atomic_json, atomic_write
 from .methods import MAML, METHODS
 
@@ -36,7 +36,7 @@ DEFAULT_ITERATIONS = {"protonets": 2000, "maml": 1000}
 
 
 
-@dataclass
+@dataclass(frozen=True)
 class TrainConfig:
     method: str = "protonets"
     resolution: int = 56
@@ -54,7 +54,12 @@ class TrainConfig:
             raise BaselineError(f"unknown baseline {self.method!r}; choose protonets or maml")
         if self.resolution < 16:
             raise BaselineError("the Conv-4 backbone needs images of at least 16x16")
-        self.train_ways = tuple(self.train_ways)
+        object.__setattr__(self, "train_ways", tuple(self.train_ways))
+        check_counts(self, {"iterations": 1, "k_shot": 1, "meta_batch": 1, "checkpoint_every": 1, "seed": 0},
+                     "baseline ")
+        check_positive(self, ("learning_rate",), "baseline ")
+        if not self.train_ways or min(self.train_ways) < 2:
+            raise BaselineError(f"training ways must be 2 or more; got {self.train_ways}")
 
     def model(self):
         if self.method == "maml":

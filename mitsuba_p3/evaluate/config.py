@@ -4,7 +4,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 from ..concepts import DistanceConfig
-from ..errors import ConfigError
+from ..errors import ConfigError, check_counts
 from ..infer.likelihood import LIKELIHOODS, LikelihoodConfig
 from ..infer.mcmc import SamplerConfig
 from ..render import RENDERERS
@@ -41,11 +41,7 @@ class EvaluationConfig:
             LikelihoodConfig(sigma=self.sigma)        # the one rule for sigma
         if self.renderer not in RENDERERS:
             raise ConfigError(f"unknown renderer {self.renderer!r}; choose {' or '.join(RENDERERS)}")
-        for name, least in (("episodes", 1), ("queries_per_class", 1), ("episode_seed", 0), ("keep_draws", 1),
-                            ("jobs", 1)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < least:
-                raise ConfigError(f"{name.replace('_', '-')} must be a whole number >= {least}; got {value!r}")
+        check_counts(self, {"episodes": 1, "queries_per_class": 1, "episode_seed": 0, "keep_draws": 1, "jobs": 1})
         if self.dask is not None and not (isinstance(self.dask, str) and self.dask.strip()):
             raise ConfigError(f"--dask must be a scheduler address such as tcp://host:8786; got {self.dask!r}")
 

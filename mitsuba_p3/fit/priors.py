@@ -32,7 +32,7 @@ import numpy as np
 from ..space import MATERIAL_VARIABLES, SLICES, hypothesis_of
 
 
-@dataclass
+@dataclass(frozen=True)
 class PriorConfig:
     """Every prior number in one place; the defaults are the paper's (PAPER_NOTES.md)."""
 
@@ -46,6 +46,20 @@ class PriorConfig:
     class_temperature: float = 0.5
     gmm_components: int = 2
     gmm_seed: int = 0
+
+    def __post_init__(self):
+        from ..errors import ConfigError, check_counts, check_positive
+
+        object.__setattr__(self, "shift_mean", tuple(self.shift_mean))
+        object.__setattr__(self, "class_probabilities", tuple(self.class_probabilities))
+        check_counts(self, {"gmm_components": 1, "gmm_seed": 0}, "prior ")
+        check_positive(self, ("shift_sd", "shift_bound", "scale_mean", "scale_variance", "class_temperature"),
+                       "prior ")
+        if not self.theta_concentration >= 0:
+            raise ConfigError(f"prior theta-concentration must be >= 0; got {self.theta_concentration}")
+        p = self.class_probabilities
+        if len(p) != 3 or min(p) <= 0 or abs(sum(p) - 1) > 1e-6:
+            raise ConfigError(f"prior class-probabilities must be 3 positive numbers summing to 1; got {p}")
 
     @property
     def scale_log_sigma(self) -> float:

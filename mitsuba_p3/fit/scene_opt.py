@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from ..benchmarks.dataset import Dataset
-from ..errors import FitError
+from ..errors import ConfigError, FitError, check_counts, check_positive
 from ..scene import Camera, Floor, PhongMaterial, PointLight, Scene, SceneObject
 from ..shapes import shape_index
 
@@ -31,7 +31,7 @@ GLOBAL_KEYS = ("light_position", "light_intensity", "floor_colour", "floor_ambie
 
 
 
-@dataclass
+@dataclass(frozen=True)
 class SceneOptConfig:
     """The schedule and initialisation (defaults: the paper's, see PAPER_NOTES.md)."""
 
@@ -50,6 +50,14 @@ class SceneOptConfig:
                                                          "shininess": 4.0})
     init_floor: dict = field(default_factory=lambda: {"colour": 0.5, "ambient": 0.1, "diffuse": 0.9})
     snapshots: int = 3     # train images whose render is kept after every epoch (figures)
+
+    def __post_init__(self):
+        check_counts(self, {"epochs": 1, "material_passes": 0, "global_passes": 0, "lights": 1, "pattern_size": 1,
+                            "seed": 0, "snapshots": 0}, "fit ")
+        check_positive(self, ("learning_rate",), "fit ")
+        object.__setattr__(self, "resolution", tuple(self.resolution))
+        if len(self.resolution) != 2 or min(self.resolution) < 1:
+            raise ConfigError(f"fit resolution must be (height, width); got {self.resolution}")
 
 
 def material_key(shot) -> str:

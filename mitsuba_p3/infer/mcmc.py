@@ -76,17 +76,11 @@ class SamplerConfig:
     seed: int = 0
 
     def __post_init__(self):
-        from ..errors import ConfigError
+        from ..errors import ConfigError, check_counts, check_positive
 
-        counts = {"chains": 2, "steps": 1, "burn_in": 0, "tune_rounds": 0, "tune_steps": 1, "walks_per_step": 1,
-                  "init_candidates": 1, "block": 1, "seed": 0}
-        for name, least in counts.items():
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
-                raise ConfigError(f"sampler {name.replace('_', '-')} must be a whole number >= {least}; got {value!r}")
-        for name in ("initial_scale", "cull_margin"):
-            if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0):
-                raise ConfigError(f"sampler {name.replace('_', '-')} must be positive; got {getattr(self, name)!r}")
+        check_counts(self, {"chains": 2, "steps": 1, "burn_in": 0, "tune_rounds": 0, "tune_steps": 1,
+                            "walks_per_step": 1, "init_candidates": 1, "block": 1, "seed": 0}, "sampler ")
+        check_positive(self, ("initial_scale", "cull_margin"), "sampler ")
         for name in ("target_acceptance", "mode_jump_probability"):
             if not 0 <= getattr(self, name) < 1:
                 raise ConfigError(f"sampler {name.replace('_', '-')} must lie in [0, 1); got {getattr(self, name)!r}")
