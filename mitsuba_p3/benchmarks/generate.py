@@ -35,7 +35,8 @@ def world_file(variant: str) -> Path:
     """The XML that describes a variant's world."""
     path = WORLDS / f"{check_variant(variant)}.xml"
     if not path.is_file():
-        raise BenchmarkError(f"{path}: missing benchmark world; run `python scripts/make_scenes.py`")
+        raise BenchmarkError(f"{path}: missing benchmark world; copy scenes/benchmarks/fsclvr.xml to "
+                             f"{path.name} and edit it")
     return path
 
 

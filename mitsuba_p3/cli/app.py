@@ -59,3 +59,13 @@ def phase_progress_bar(description: str):
         bar.update(bar.task_ids[0], description=phase, completed=done, total=total)
 
     return bar, track
+
+
+SAMPLER_HELP = {"chains": "MH chains per posterior, run in one batched render per step.",
+                "steps": "Kept draws per chain.", "burn_in": "Burn-in steps after tuning.",
+                "tune_rounds": "Tuning rounds.", "tune_steps": "Steps per tuning round."}
+
+
+def sampler_option(name: str, defaults) -> typer.Option:
+    """The option of one sampler setting, defaulting to ``defaults``' value (a SamplerConfig)."""
+    return typer.Option(getattr(defaults, name), help=SAMPLER_HELP[name])

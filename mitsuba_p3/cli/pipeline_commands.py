@@ -10,7 +10,7 @@ import typer
 
 from ..evaluate.config import PRESET
 from ..infer.mcmc import SamplerConfig
-from .app import app, phase_progress_bar, progress_bar
+from .app import app, phase_progress_bar, progress_bar, sampler_option
 
 
 @app.command()
@@ -54,11 +54,11 @@ def infer(
     image: Path = typer.Argument(..., help="Observed image (PNG/JPEG, or .npy floats in [0, 1])."),
     model: Path = typer.Option(..., "--model", help="Fitted-model folder (mitsuba-p3 fit)."),
     output: Path = typer.Option(..., "-o", "--output", help="Folder for the posterior and its figures."),
-    chains: int = typer.Option(SamplerConfig.chains, help="MH chains, run in one batched render per step."),
-    steps: int = typer.Option(SamplerConfig.steps, help="Kept draws per chain."),
-    burn_in: int = typer.Option(SamplerConfig.burn_in, help="Burn-in steps after tuning."),
-    tune_rounds: int = typer.Option(SamplerConfig.tune_rounds, help="Tuning rounds."),
-    tune_steps: int = typer.Option(SamplerConfig.tune_steps, help="Steps per tuning round."),
+    chains: int = sampler_option("chains", SamplerConfig),
+    steps: int = sampler_option("steps", SamplerConfig),
+    burn_in: int = sampler_option("burn_in", SamplerConfig),
+    tune_rounds: int = sampler_option("tune_rounds", SamplerConfig),
+    tune_steps: int = sampler_option("tune_steps", SamplerConfig),
     likelihood: str = typer.Option("np3", help="p3 (colour) or np3 (colour + neural)."),
     sigma: Optional[float] = typer.Option(None, help="Colour-likelihood sigma (default 1.0; 0.35 for dark)."),
     renderer: str = typer.Option("mitsuba", help="mitsuba (pure_callback) or jax (native tracer)."),
@@ -92,11 +92,11 @@ def evaluate(
     episodes: int = typer.Option(100, help="Episodes per N-way K-shot setting."),
     jobs: int = typer.Option(1, help="Parallel posterior jobs (joblib)."),
     dask: Optional[str] = typer.Option(None, "--dask", help="Dask scheduler address: run the jobs there."),
-    chains: int = typer.Option(SamplerConfig.chains, help="MH chains per posterior."),
-    steps: int = typer.Option(SamplerConfig.steps, help="Kept draws per chain."),
-    burn_in: int = typer.Option(SamplerConfig.burn_in, help="Burn-in steps after tuning."),
-    tune_rounds: int = typer.Option(SamplerConfig.tune_rounds, help="Tuning rounds."),
-    tune_steps: int = typer.Option(SamplerConfig.tune_steps, help="Steps per tuning round."),
+    chains: int = sampler_option("chains", SamplerConfig),
+    steps: int = sampler_option("steps", SamplerConfig),
+    burn_in: int = sampler_option("burn_in", SamplerConfig),
+    tune_rounds: int = sampler_option("tune_rounds", SamplerConfig),
+    tune_steps: int = sampler_option("tune_steps", SamplerConfig),
     sigma: Optional[float] = typer.Option(None, help="Colour-likelihood sigma (default: the paper's, "
                                                      "1.0; 0.35 for a dark-fitted model)."),
     distance: str = typer.Option("all", help="Distance terms: 'all' (the paper's) or some joined by '+', e.g. "
@@ -135,11 +135,11 @@ def reproduce(
     likelihoods: str = typer.Option("p3,np3", help="Comma-separated: p3, np3."),
     episodes: int = typer.Option(100, help="Episodes per N-way K-shot setting."),
     jobs: int = typer.Option(len(os.sched_getaffinity(0)), help="Parallel posterior workers (default: one per core)."),
-    chains: int = typer.Option(PRESET.chains, help="MH chains per posterior (the evaluation preset)."),
-    steps: int = typer.Option(PRESET.steps, help="Kept draws per chain."),
-    burn_in: int = typer.Option(PRESET.burn_in, help="Burn-in steps after tuning."),
-    tune_rounds: int = typer.Option(PRESET.tune_rounds, help="Tuning rounds."),
-    tune_steps: int = typer.Option(PRESET.tune_steps, help="Steps per tuning round."),
+    chains: int = sampler_option("chains", PRESET),
+    steps: int = sampler_option("steps", PRESET),
+    burn_in: int = sampler_option("burn_in", PRESET),
+    tune_rounds: int = sampler_option("tune_rounds", PRESET),
+    tune_steps: int = sampler_option("tune_steps", PRESET),
     sigma: Optional[float] = typer.Option(None, help="Colour-likelihood sigma (default: the paper's); runs go to "
                                                      "runs/V-sigmaS."),
     distance: str = typer.Option("all", help="Distance terms: 'all' or e.g. colour+class (tables in "

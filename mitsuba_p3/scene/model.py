@@ -1,11 +1,8 @@
 """The scene as plain data: Camera, PointLight, PhongMaterial, Floor, SceneObject, Scene.
 
-A :class:`Scene` is plain data. It converts to the renderer contract
-(:meth:`Scene.params`, a flat mapping of named arrays) and to and from Mitsuba
-XML. The XML files are genuine Mitsuba scenes (``mi.load_file`` renders them
-with the project's ``phong`` BSDF and ``phong_integrator``); the object's knobs are ``<default>``
-values at the top of the file, so a person edits them by hand, or overrides them
-like Mitsuba's ``-D name=value``.
+A :class:`Scene` converts to the renderer contract (:meth:`Scene.params`, a flat
+mapping of named arrays); :mod:`.xml` reads and writes it as Mitsuba XML, whose
+object knobs :func:`object_overrides` fills from a user's words.
 """
 from __future__ import annotations
 
