@@ -23,6 +23,7 @@ def _synthetic(seed: int, classes: int, shots: int = 6) -> dict[str, np.ndarray]
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method, iterations", [("protonets", 60), ("maml", 60)])
 def test_baseline_learns_novel_classes_above_chance(method, iterations, tmp_path):
     import jax
@@ -57,6 +58,7 @@ def test_training_resumes_from_its_checkpoint_and_refuses_other_settings(tmp_pat
         TrainConfig(method="siamese")
 
 
+@pytest.mark.slow
 def test_cli_trains_and_evaluates_on_a_benchmark(tmp_path):
     import json
     import subprocess

@@ -158,6 +158,7 @@ def test_object_is_where_its_label_says(tiny_fsclvr, mi):
     assert len(hits) >= 10 and np.mean(hits) >= 0.9
 
 
+@pytest.mark.slow
 def test_killed_generation_resumes(tmp_path):
     out = tmp_path / "killed"
     command = [sys.executable, "-m", "mitsuba_p3.cli", "benchmark", "generate", "ood", "--out", str(out),

@@ -35,6 +35,7 @@ def bench(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_evaluate_resumes_after_kill_and_writes_tables(bench, tmp_path):
     run = tmp_path / "run"
     command = [sys.executable, "-m", "mitsuba_p3.cli", "evaluate", str(bench / "data"), "--model",
@@ -83,6 +84,7 @@ def test_evaluate_resumes_after_kill_and_writes_tables(bench, tmp_path):
     assert other.returncode == 2 and "other settings" in other.stderr
 
 
+@pytest.mark.slow
 def test_posteriors_on_a_dask_cluster(bench, tmp_path):
     from dask.distributed import LocalCluster
 
@@ -96,6 +98,7 @@ def test_posteriors_on_a_dask_cluster(bench, tmp_path):
             assert f["sample_colour"].shape[1] == 3 and f["sample_class"].ndim == 1
 
 
+@pytest.mark.slow
 def test_parallel_workers_share_the_cores(bench, tmp_path):
     """With --jobs 2 every worker renders with its share of the cores, not all of them."""
     from mitsuba_p3.evaluate import worker_threads

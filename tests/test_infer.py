@@ -166,6 +166,7 @@ def test_safe_conversions(tmp_path):
     np.testing.assert_allclose(load_observation(tmp_path / "rgba.png"), 100 / 255, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_cli_infer_writes_posterior_and_figures(fitted, observed, tmp_path):
     write_png(tmp_path / "obs.png", observed)
     result = subprocess.run([sys.executable, "-m", "mitsuba_p3.cli", "infer", str(tmp_path / "obs.png"), "--model",
