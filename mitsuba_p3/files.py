@@ -33,6 +33,13 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
             os.remove(temporary)
 
 
+@contextmanager
+def atomic_open(path: str | Path) -> Iterator:
+    """A text file (UTF-8, ``newline=""`` as the csv module wants) renamed to ``path`` when the block ends."""
+    with atomic_path(path) as temporary, open(temporary, "w", newline="", encoding="utf-8") as f:
+        yield f
+
+
 def atomic_write(path: str | Path, data: bytes | str) -> Path:
     """Write bytes or text (UTF-8) to ``path`` atomically."""
     with atomic_path(path) as temporary:

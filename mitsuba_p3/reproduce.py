@@ -32,7 +32,7 @@ from typing import Callable
 from .benchmarks.protocol import VARIANTS
 from .errors import ConfigError
 from .evaluate import PRESET, SETTINGS, EvaluationConfig, evaluate, load_baselines, markdown_table, setting_name
-from .files import atomic_json, atomic_write
+from .files import atomic_json, atomic_open, atomic_write
 
 PAPER_ACCURACY = {  # shared/PAPER_NOTES.md: 5w1s / 5w5s / 10w1s / 10w5s (their data sets)
     "MAML 56": {"fsclvr": "77.0/87.5/62.8/69.8", "room": "77.9/79.2/47.2/61.5", "dark": "79.6/86.2/60.4/62.8",
@@ -178,7 +178,7 @@ def write_paper_tables(out: Path, results: dict) -> None:
             "distance terms were chosen on train classes (scripts/select_sigma.py, scripts/select_distance.py). "
             "The paper's numbers are on its own data sets: compare in spirit.\n")
     atomic_write(out / "accuracy.md", markdown_table(header, rows) + note)
-    with open(out / "accuracy.csv", "w", newline="") as f:
+    with atomic_open(out / "accuracy.csv") as f:
         writer = csv.writer(f)
         writer.writerow(["benchmark", "model", "sigma", "distance", "setting", "accuracy", "half_width_95", "ece",
                          "paper"])
@@ -199,7 +199,7 @@ def write_paper_tables(out: Path, results: dict) -> None:
     rows = [[TITLES[c]] + [adi(c, m, s) for m, s in pose_models] + [f"{PAPER_ADI[c][0]:.4f} / {PAPER_ADI[c][1]:.4f}"]
             for c in COLUMNS if any(v == c for v, _, _ in results)]
     atomic_write(out / "adi.md", markdown_table(header, rows))
-    with open(out / "adi.csv", "w", newline="") as f:
+    with atomic_open(out / "adi.csv") as f:
         writer = csv.writer(f)
         writer.writerow(["benchmark", "model", "sigma", "mean_adi_m", "median_adi_m", "paper_mean_adi_m"])
         for c in COLUMNS:

@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Callable
 
 from ..benchmarks.dataset import load_dataset
-from ..files import atomic_json
+from ..files import atomic_json, atomic_open
 from .config import EvaluationConfig
 from .jobs import CachedPosterior, check_run, compute_posteriors, posterior_path
 from .metrics import accuracy_of, classify_episodes, feasible_settings, pose_errors, pose_summary, setting_name
@@ -49,7 +49,7 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
         }
     out = tables_dir(run_dir, config.distance)
     out.mkdir(parents=True, exist_ok=True)
-    with open(out / "predictions.csv", "w", newline="") as f:
+    with atomic_open(out / "predictions.csv") as f:
         if predictions:
             writer = csv.DictWriter(f, fieldnames=list(predictions[0]))
             writer.writeheader()

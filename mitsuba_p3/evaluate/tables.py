@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 from ..concepts import PROPERTIES, DistanceConfig
+from ..files import atomic_open, atomic_write
 from .metrics import SETTINGS, setting_name
 
 
@@ -43,8 +44,8 @@ def write_tables(run_dir: Path, results: dict, baselines_dir: Path | None = None
         rows.append([baseline["model"]] + [
             f"{100 * a['mean']:.1f} ± {100 * a['half_width']:.1f}" if (a := baseline["accuracy"].get(name)) else "-"
             for name in settings])
-    (run_dir / "accuracy.md").write_text(markdown_table(header, rows))
-    with open(run_dir / "accuracy.csv", "w", newline="") as f:
+    atomic_write(run_dir / "accuracy.md", markdown_table(header, rows))
+    with atomic_open(run_dir / "accuracy.csv") as f:
         writer = csv.writer(f)
         writer.writerow(["model", "setting", "accuracy", "half_width_95", "episodes", "ece"])
         for likelihood, result in results.items():
@@ -58,9 +59,9 @@ def write_tables(run_dir: Path, results: dict, baselines_dir: Path | None = None
     adi_rows = [[c] + [f"{result['adi_per_class'][c]['mean']:.4f} / {result['adi_per_class'][c]['median']:.4f}"
                        for result in results.values()] for c in classes]
     adi_rows.append(["**all**"] + [f"{r['adi']['mean']:.4f} / {r['adi']['median']:.4f}" for r in results.values()])
-    (run_dir / "adi.md").write_text(markdown_table(["class"] + [f"{k.upper()} mean / median (m)" for k in results],
+    atomic_write(run_dir / "adi.md", markdown_table(["class"] + [f"{k.upper()} mean / median (m)" for k in results],
                                               adi_rows))
-    with open(run_dir / "adi.csv", "w", newline="") as f:
+    with atomic_open(run_dir / "adi.csv") as f:
         writer = csv.writer(f)
         writer.writerow(["model", "class", "mean_adi_m", "median_adi_m", "images"])
         for likelihood, result in results.items():

@@ -1,12 +1,12 @@
 """Write a posterior and the figures a person looks at into a folder."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from .. import plots
+from ..files import atomic_json
 from ..fit.model import FittedModel
 from ..space import render_params
 from .posterior import Posterior
@@ -40,9 +40,8 @@ def write_report(posterior: Posterior, fitted: FittedModel, out: str | Path, ren
     diagnostics = {"max_r_hat": float(summary["r_hat"].max()), "min_ess_bulk": float(summary["ess_bulk"].min())}
     attrs = dict(posterior.idata.posterior.attrs)
     estimate_file = out / "estimate.json"
-    estimate_file.write_text(json.dumps({"estimate": estimate, "diagnostics": diagnostics,
-                                         "seconds": attrs.get("seconds"), "acceptance": attrs.get("acceptance")},
-                                        indent=1))
+    atomic_json(estimate_file, {"estimate": estimate, "diagnostics": diagnostics,
+                                "seconds": attrs.get("seconds"), "acceptance": attrs.get("acceptance")})
     written["estimate"] = str(estimate_file)
 
     observed = np.asarray(posterior.idata.observed_data["image"].values, np.float32)

@@ -15,6 +15,7 @@ from typing import Mapping
 import numpy as np
 
 from ..errors import SceneError
+from ..files import atomic_write
 from ..shapes import PARTS, SHAPES
 from .model import OBJECT_DEFAULTS, PhongMaterial, PointLight, Scene, SceneObject, _number, _vector, fmt
 
@@ -126,7 +127,7 @@ def save_scene(scene: Scene, path: str | Path, description: str = "") -> Path:
         from ..images import write_png
 
         write_png(path.parent / floor.pattern_file, floor.pattern)
-    path.write_text(scene_to_xml(scene, description))
+    atomic_write(path, scene_to_xml(scene, description))
     return path
 
 
