@@ -221,7 +221,7 @@ def test_prior_round_trips_through_json(prior):
 # ------------------------------------------------------------------ model folder
 def test_model_folder_loads_without_refitting(tiny_model, tiny_dataset):
     again = FittedModel(tiny_model.root)
-    assert set(again.info["stages"]) == {"scene", "features", "priors"}
+    assert set(again.info["stages"]) == {"scene", "features", "priors", "noise"}
     scene = again.scene()
     assert len(scene.lights) == 5 and scene.floor.pattern.shape == (16, 16, 3)
     z = again.prior.sample(np.random.default_rng(0), 3)
@@ -258,3 +258,56 @@ def test_figure_script_writes_every_figure(tiny_model, tmp_path):
     assert result.returncode == 0, result.stderr
     for name in ("progress", "loss", "materials", "gmm_priors", "reparametrisation", "prior_predictive"):
         assert (tmp_path / f"{name}.png").stat().st_size > 1000
+
+
+# ------------------------------------------------------------------ noise model
+def test_noise_em_recovers_scale_and_outlier_weight():
+    from mitsuba_p3.fit.noise import fit_mixture
+
+    rng = np.random.default_rng(0)
+    residuals = rng.normal(0, 0.03, (20, 60, 80, 3))
+    outliers = rng.uniform(size=(20, 60, 80)) < 0.05
+    residuals[outliers] = rng.uniform(-1, 1, (outliers.sum(), 3))
+    sigma, outlier, _ = fit_mixture(residuals)
+    assert sigma == pytest.approx(0.03, rel=0.02) and outlier == pytest.approx(0.05, rel=0.05)
+
+
+def test_correlation_area_of_white_and_smoothed_noise():
+    """White noise has a correlation area of one pixel; Gaussian-smoothed noise (sd s) about 4 pi s^2."""
+    from scipy.ndimage import gaussian_filter
+
+    from mitsuba_p3.fit.noise import correlation_area
+
+    rng = np.random.default_rng(1)
+    assert correlation_area(rng.normal(size=(10, 60, 80, 3))) == pytest.approx(1.0, abs=0.3)
+    smooth = gaussian_filter(rng.normal(size=(10, 120, 160, 3)), sigma=(0, 1.5, 1.5, 0))
+    assert correlation_area(smooth) == pytest.approx(4 * np.pi * 1.5 ** 2, rel=0.2)
+
+
+def test_robust_likelihood_bounds_what_an_outlier_costs():
+    """A pixel far off costs at most -log(eps / 8) under the mixture, but grows without bound without it."""
+    from mitsuba_p3.fit.noise import pixel_log_likelihood
+
+    small, large = np.zeros((1, 3)), np.full((1, 3), 0.9)
+    for outlier in (0.0, 0.05):
+        gap = pixel_log_likelihood(small, 0.03, outlier) - pixel_log_likelihood(large, 0.03, outlier)
+        if outlier:
+            assert gap[0] < -np.log(outlier / 8) + 3 * np.log(1 / (0.03 * np.sqrt(2 * np.pi)))
+        else:
+            assert gap[0] > 1000
+
+
+def test_fitted_noise_is_the_default_likelihood(tiny_model):
+    from mitsuba_p3.infer.posterior import default_likelihood
+
+    noise = json.loads((tiny_model.root / "noise.json").read_text())
+    assert 0 < noise["model"]["sigma"] < 0.3 and 0 < noise["model"]["outlier"] < 0.5
+    assert 0 < noise["model"]["power"] <= 1 and noise["figures"]["correlation_area_pixels"] >= 1
+    fitted = default_likelihood(tiny_model, "p3")
+    assert (fitted.sigma, fitted.outlier, fitted.power, fitted.shadows) == (
+        noise["model"]["sigma"], noise["model"]["outlier"], noise["model"]["power"], True)
+    paper = default_likelihood(tiny_model, "p3", noise="paper")
+    assert (paper.sigma, paper.outlier, paper.power, paper.shadows) == (1.0, 0.0, 1.0, False)
+    assert default_likelihood(tiny_model, "p3", sigma=0.35).sigma == 0.35
+    with pytest.raises(MitsubaP3Error, match="noise model"):
+        default_likelihood(tiny_model, "p3", noise="student")

@@ -52,7 +52,7 @@ def test_colour_likelihood_is_the_truncated_normal(observed):
     renders = np.clip(observed[None] + rng.normal(0, 0.1, (2,) + observed.shape), 0, 1).astype(np.float32)
     for sigma in (1.0, 0.35):
         expected = truncnorm.logpdf(observed[None] - renders, -1 / sigma, 1 / sigma, 0, sigma).sum(axis=(1, 2, 3))
-        np.testing.assert_allclose(np.asarray(colour_log_likelihood(observed, renders, sigma)), expected, rtol=1e-5)
+        np.testing.assert_allclose(np.asarray(colour_log_likelihood(observed, renders, LikelihoodConfig("p3", sigma=sigma))), expected, rtol=1e-5)
 
 
 def test_likelihood_config_rejects_bad_values():

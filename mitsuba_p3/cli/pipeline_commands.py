@@ -17,7 +17,7 @@ from .app import app, phase_progress_bar, progress_bar, sampler_option
 def fit(
     dataset_dir: Path = typer.Argument(..., help="Benchmark folder (its train split is used)."),
     out: Path = typer.Option(..., "--out", help="Fitted-model folder to write."),
-    stages: str = typer.Option("scene,features,priors", help="Comma-separated stages to (re-)run."),
+    stages: str = typer.Option("scene,features,priors,noise", help="Comma-separated stages to (re-)run."),
     epochs: int = typer.Option(7, help="Scene optimisation epochs."),
     material_passes: int = typer.Option(5, help="Material-only passes per epoch."),
     global_passes: int = typer.Option(5, help="Global-only passes per epoch."),
@@ -60,7 +60,10 @@ def infer(
     tune_rounds: int = sampler_option("tune_rounds", SamplerConfig),
     tune_steps: int = sampler_option("tune_steps", SamplerConfig),
     likelihood: str = typer.Option("np3", help="p3 (colour) or np3 (colour + neural)."),
-    sigma: Optional[float] = typer.Option(None, help="Colour-likelihood sigma (default 1.0; 0.35 for dark)."),
+    noise: str = typer.Option("fitted", help="Noise model: fitted (the model's, from its train residuals) or paper "
+                                             "(sigma 1, no outliers, no shadows)."),
+    sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
+                                                     "dark set)."),
     renderer: str = typer.Option("mitsuba", help="mitsuba (pure_callback) or jax (native tracer)."),
     seed: int = typer.Option(0, help="Sampler seed."),
 ) -> None:
@@ -77,7 +80,7 @@ def infer(
     bar, track = phase_progress_bar("sampling")
 
     with bar:
-        posterior = infer_image(fitted, observed, default_likelihood(fitted, likelihood, sigma), config,
+        posterior = infer_image(fitted, observed, default_likelihood(fitted, likelihood, sigma, noise), config,
                                 renderer=renderer, progress=track, attrs={"image": str(image)})
     written = write_report(posterior, fitted, output, renderer=renderer)
     typer.echo(json.dumps(written, indent=2))
@@ -97,8 +100,10 @@ def evaluate(
     burn_in: int = sampler_option("burn_in", SamplerConfig),
     tune_rounds: int = sampler_option("tune_rounds", SamplerConfig),
     tune_steps: int = sampler_option("tune_steps", SamplerConfig),
-    sigma: Optional[float] = typer.Option(None, help="Colour-likelihood sigma (default: the paper's, "
-                                                     "1.0; 0.35 for a dark-fitted model)."),
+    noise: str = typer.Option("fitted", help="Noise model: fitted (the model's, from its train residuals) or paper "
+                                             "(sigma 1, no outliers, no shadows)."),
+    sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
+                                                     "dark set)."),
     distance: str = typer.Option("all", help="Distance terms: 'all' (the paper's) or some joined by '+', e.g. "
                                              "colour+class; another distance reuses the run's posteriors and "
                                              "writes its tables to RUN/distance-TERMS."),
@@ -111,7 +116,8 @@ def evaluate(
     from ..evaluate import evaluate as run_evaluation
 
     chosen = tuple(k.strip() for k in likelihoods.split(",") if k.strip())
-    config = EvaluationConfig(likelihoods=chosen, sigma=sigma, renderer=renderer, episodes=episodes, jobs=jobs,
+    config = EvaluationConfig(likelihoods=chosen, sigma=sigma, noise=noise, renderer=renderer, episodes=episodes,
+                              jobs=jobs,
                               dask=dask, distance=DistanceConfig(properties=parse_properties(distance)),
                               sampler=SamplerConfig(chains=chains, steps=steps, burn_in=burn_in,
                                                     tune_rounds=tune_rounds, tune_steps=tune_steps, seed=seed))
@@ -140,7 +146,9 @@ def reproduce(
     burn_in: int = sampler_option("burn_in", PRESET),
     tune_rounds: int = sampler_option("tune_rounds", PRESET),
     tune_steps: int = sampler_option("tune_steps", PRESET),
-    sigma: Optional[float] = typer.Option(None, help="Colour-likelihood sigma (default: the paper's); runs go to "
+    noise: str = typer.Option("fitted", help="Noise model: fitted (the model's, from its train residuals) or paper "
+                                             "(sigma 1, no outliers, no shadows)."),
+    sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma; runs go to "
                                                      "runs/V-sigmaS."),
     distance: str = typer.Option("all", help="Distance terms: 'all' or e.g. colour+class (tables in "
                                              "runs/V/distance-TERMS; the posteriors are shared)."),
@@ -157,7 +165,7 @@ def reproduce(
     sampler = replace(PRESET, chains=chains, steps=steps, burn_in=burn_in, tune_rounds=tune_rounds,
                       tune_steps=tune_steps)
     evaluation = EvaluationConfig(likelihoods=tuple(k.strip() for k in likelihoods.split(",") if k.strip()),
-                                  sigma=sigma, sampler=sampler, episodes=episodes, jobs=jobs,
+                                  sigma=sigma, noise=noise, sampler=sampler, episodes=episodes, jobs=jobs,
                                   distance=DistanceConfig(properties=parse_properties(distance)))
     config = ReproduceConfig(benchmarks=tuple(b.strip() for b in benchmarks.split(",") if b.strip()),
                              evaluation=evaluation)

@@ -5,7 +5,7 @@ from dataclasses import asdict, dataclass, field
 
 from ..concepts import DistanceConfig
 from ..errors import ConfigError, check_counts
-from ..infer.likelihood import LIKELIHOODS, LikelihoodConfig
+from ..infer.likelihood import LIKELIHOODS, NOISES, LikelihoodConfig
 from ..infer.mcmc import SamplerConfig
 from ..render import RENDERERS
 
@@ -17,7 +17,8 @@ PRESET = SamplerConfig(chains=8, steps=200, burn_in=30, tune_rounds=3, tune_step
 @dataclass(frozen=True)
 class EvaluationConfig:
     likelihoods: tuple = ("p3", "np3")
-    sigma: float | None = None   # colour-likelihood sigma; None: the paper's (1.0; 0.35 for dark)
+    sigma: float | None = None   # colour-likelihood sigma in the paper's form; None: as ``noise`` says
+    noise: str = "fitted"        # fitted: the model's noise model; paper: sigma 1, no outliers, no shadows
     renderer: str = "mitsuba"
     sampler: SamplerConfig = field(default_factory=SamplerConfig)
     episodes: int = 100          # per N-way K-shot setting
@@ -39,6 +40,8 @@ class EvaluationConfig:
             raise ConfigError(f"likelihoods named twice: {', '.join(likelihoods)}")
         if self.sigma is not None:
             LikelihoodConfig(sigma=self.sigma)        # the one rule for sigma
+        if self.noise not in NOISES:
+            raise ConfigError(f"unknown noise model {self.noise!r}; choose {' or '.join(NOISES)}")
         if self.renderer not in RENDERERS:
             raise ConfigError(f"unknown renderer {self.renderer!r}; choose {' or '.join(RENDERERS)}")
         check_counts(self, {"episodes": 1, "queries_per_class": 1, "episode_seed": 0, "keep_draws": 1, "jobs": 1})
@@ -48,5 +51,5 @@ class EvaluationConfig:
     def cache_key(self) -> dict:
         """The settings a cached posterior depends on."""
         return {"renderer": self.renderer, "sampler": asdict(self.sampler), "keep_draws": self.keep_draws,
-                "sigma": self.sigma}
+                "sigma": self.sigma, "noise": self.noise}
 

@@ -84,7 +84,7 @@ def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str,
     shot = dataset.shots[index]
     fitted = FittedModel(model_dir)
     start = time.perf_counter()
-    posterior = infer_image(fitted, dataset.image(shot), default_likelihood(fitted, likelihood, config.sigma),
+    posterior = infer_image(fitted, dataset.image(shot), default_likelihood(fitted, likelihood, config.sigma, config.noise),
                             config.sampler, renderer=config.renderer)
     seconds = time.perf_counter() - start
     estimate = posterior.estimate()

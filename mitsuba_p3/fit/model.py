@@ -15,10 +15,12 @@ snapshots.npz          observations and their renders after every epoch (figures
 features.json          the selected VGG16 channels and their losses
 channel_losses.npz     every channel's loss, per layer
 priors.json            prior configuration and the fitted GMMs
+noise.json             the pixel noise model fitted to the train residuals (sigma, outlier
+                       weight, likelihood power) and figures about the fit
 =====================  ===========================================================
 
-Stages: ``scene`` (scene optimisation), ``features`` (needs scene) and
-``priors`` (needs scene). Each writes its files atomically and then records
+Stages: ``scene`` (scene optimisation), ``features``, ``priors`` and ``noise``
+(each needs scene). Each writes its files atomically and then records
 itself in model.json, so a stage can be re-run alone.
 """
 from __future__ import annotations
@@ -36,13 +38,14 @@ import numpy as np
 from ..files import atomic_json, atomic_npz, atomic_write
 from ..benchmarks.dataset import Dataset, load_dataset
 from .features import Channel, channel_losses, select_channels
+from .noise import NoiseModel, fit_noise
 from .priors import Prior, PriorConfig, fit_priors
 from ..errors import FitError
 from .scene_opt import SceneFit, SceneOptConfig, geometry_of, material_key, optimise_scene
 
 MODEL_FORMAT = "mitsuba-p3-model"
 MODEL_VERSION = 1
-STAGES = ("scene", "features", "priors")
+STAGES = ("scene", "features", "priors", "noise")
 
 
 class FittedModel:
@@ -89,6 +92,12 @@ class FittedModel:
         return Prior.from_dict(json.loads((self.root / "priors.json").read_text()))
 
     @property
+    def noise(self) -> NoiseModel:
+        """The pixel noise model fitted to the train residuals (:mod:`.noise`)."""
+        self.require("noise")
+        return NoiseModel(**json.loads((self.root / "noise.json").read_text())["model"])
+
+    @property
     def dataset_root(self) -> Path:
         return Path(self.info["dataset"]["root"])
 
@@ -120,12 +129,14 @@ def save_scene_fit(root: Path, fit: SceneFit) -> None:
                "floor pattern clipped to [0, 1] (scene.npz has the exact values)")
 
 
-def render_train_split(model: FittedModel, dataset: Dataset) -> tuple[np.ndarray, np.ndarray]:
-    """(observations, optimised renders) of every train image, at the data set's resolution."""
+def render_train_split(model: FittedModel, dataset: Dataset, shadows: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(observations, optimised renders) of every train image, at the data set's resolution; with hard
+    shadows as in the scene fit, unless ``shadows`` says otherwise."""
     from ..render import make_renderer
 
     height, width = dataset.resolution
-    shadows = bool(model.info["stages"]["scene"]["config"]["shadows"])
+    if shadows is None:
+        shadows = bool(model.info["stages"]["scene"]["config"]["shadows"])
     renderer = make_renderer(model.scene(), "mitsuba", height=height, width=width, shadows=shadows)
     materials = model.materials
     shots = dataset.split("train")
@@ -183,4 +194,17 @@ def fit_model(dataset_dir: str | Path, out: str | Path, stages: Sequence[str] = 
         atomic_json(root / "priors.json", prior.as_dict())
         _record(root, dataset, "priors", {"config": asdict(prior.config),
                                           "seconds": round(time.perf_counter() - start, 1)})
+
+    if "noise" in stages:
+        start = time.perf_counter()
+        model.require("scene")
+        if progress:
+            progress("noise", 0, 1, 0.0)
+        observations, renders = render_train_split(model, dataset, shadows=True)
+        noise, figures = fit_noise(observations, renders, shadows=True)
+        atomic_json(root / "noise.json", {"model": noise.as_dict(), "figures": figures})
+        _record(root, dataset, "noise", {"model": noise.as_dict(), **figures,
+                                         "seconds": round(time.perf_counter() - start, 1)})
+        if progress:
+            progress("noise", 1, 1, 0.0)
     return FittedModel(root)

@@ -113,7 +113,8 @@ class PosteriorCore:
         self.prior = fitted.prior
         self.config = likelihood
         self.renderer_kind = renderer
-        self.renderer = make_renderer(fitted.scene(), renderer, height=height, width=width, shadows=False)
+        self.renderer = make_renderer(fitted.scene(), renderer, height=height, width=width,
+                                      shadows=likelihood.shadows)
         self.channels = fitted.channels if likelihood.kind == "np3" else None
         if renderer == "mitsuba":
             self._render = mitsuba_render_function(self.renderer)
@@ -214,7 +215,8 @@ class PosteriorCore:
         vectors = jnp.concatenate([bases[..., :3, :], (observation["image"] - bases[..., 3, :])[..., None, :]],
                                   axis=-2).reshape(-1, 12)                       # (pixels, 4 x 3)
         full = (vectors.T @ vectors).reshape(4, 3, 4, 3)                            # one matmul: XLA's fast path
-        gram = jnp.einsum("icjc->cij", full) / self.config.sigma ** 2
+        # the Gaussian part of the likelihood: precision power / sigma^2 (outliers are left to the MH test)
+        gram = jnp.einsum("icjc->cij", full) * (self.config.power / self.config.sigma ** 2)
         state, colour_ok = self._colour_move(k_colour, state, bases, gram, observation)
         state, weights_ok = self._weights_move(k_weights, state, bases, gram, observation)
         return state, colour_ok & weights_ok

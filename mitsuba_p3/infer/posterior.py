@@ -9,7 +9,7 @@ the yaw is the circular mode.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -19,7 +19,7 @@ from ..errors import InferenceError
 from ..fit.model import FittedModel
 from ..space import coordinate_names
 from ..shapes import SHAPES
-from .likelihood import LikelihoodConfig
+from .likelihood import NOISES, LikelihoodConfig
 from .mcmc import SamplerConfig, SamplerRun, sample
 from .model import PosteriorModel
 
@@ -126,13 +126,24 @@ def infer_image(fitted: FittedModel, observed: np.ndarray, likelihood: Likelihoo
     run = sample(model.core.target(sampler.material_gibbs), sampler, progress, observation=model.observation)
     seconds = time.perf_counter() - start
     info = {"model": str(fitted.root), "likelihood": likelihood.kind, "sigma": likelihood.sigma,
+            "noise": asdict(likelihood),
             "renderer": renderer, "sampler": run.config, "tuning": run.tuning, "seconds": seconds,
             "acceptance": float(run.accepted.mean()), **run.statistics, **(attrs or {})}
     return to_inference_data(model, run, observed, info)
 
 
-def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | None = None) -> LikelihoodConfig:
-    """The paper's likelihood numbers; sigma 0.35 when the model was fitted on the dark benchmark."""
-    if sigma is None:
-        sigma = 0.35 if fitted.info.get("dataset", {}).get("variant") == "dark" else 1.0
-    return LikelihoodConfig(kind=kind, sigma=sigma)
+def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | None = None,
+                       noise: str = "fitted") -> LikelihoodConfig:
+    """The likelihood of ``kind`` (p3 or np3) with the model's fitted noise (``noise="fitted"``: sigma,
+    outlier weight and power from the fit's ``noise`` stage, renders with hard shadows as in that fit),
+    or the paper's (``noise="paper"``: sigma 1, no outliers, power 1, no shadows). An explicit
+    ``sigma`` selects the paper's form with that sigma (the paper used 0.35 on its dark set)."""
+    from ..errors import ConfigError
+
+    if noise not in NOISES:
+        raise ConfigError(f"unknown noise model {noise!r}; choose {' or '.join(NOISES)}")
+    if sigma is not None or noise == "paper":
+        return LikelihoodConfig(kind=kind, sigma=1.0 if sigma is None else sigma)
+    model = fitted.noise
+    return LikelihoodConfig(kind=kind, sigma=model.sigma, outlier=model.outlier, power=model.power,
+                            shadows=model.shadows)
