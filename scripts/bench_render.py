@@ -78,6 +78,15 @@ def bench(kind: str, scene, repeats: int) -> dict:
             renderer.vjp(_object_params(rng), cotangent)
             out[f"forward_backward_ms_{tag}"] = round(
                 _median_ms(lambda: renderer.vjp(_object_params(rng), cotangent), repeats), 3)
+    # hard shadows (the fitted likelihood renders with them), side by side at the inference size
+    per_image = {}
+    for shadows in (False, True):
+        renderer = make_renderer(scene, kind, height=120, width=160, shadows=shadows)
+        renderer.render(_object_params(rng, BATCH))
+        per_image[shadows] = _median_ms(lambda: renderer.render(_object_params(rng, BATCH)), repeats) / BATCH
+    out["batch20_ms_per_image_120x160_shadows_off"] = round(per_image[False], 3)
+    out["batch20_ms_per_image_120x160_shadows_on"] = round(per_image[True], 3)
+    out["shadows_cost_ratio_120x160"] = round(per_image[True] / per_image[False], 2)
     return out
 
 

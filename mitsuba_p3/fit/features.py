@@ -25,6 +25,12 @@ LAYERS: tuple[str, ...] = ("conv1_1", "conv1_2", "conv2_1", "conv2_2", "conv3_1"
 POOL_AFTER = {"conv1_2", "conv2_2", "conv3_3", "conv4_3"}  # 2x2 max-pool after these
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
+# The paper's neural weight (0.05) was set for the authors' Keras VGG16, fed 0-255 inputs with the
+# mean subtracted and no division by the std: its conv1 inputs are 255 * std (about 57.6) times
+# larger than the normalised inputs these torchvision weights expect. Feature differences are
+# scaled by that factor (exact for conv1_1 pre-ReLU, whose bias cancels in a difference), so the
+# squared distance and the weight 0.05 are on the paper's scale (scripts/neural_scale.py measures it).
+PAPER_FEATURE_SCALE = 255.0 * float(IMAGENET_STD.mean())
 
 
 def weights_file() -> Path:
@@ -141,8 +147,9 @@ def selected_features(images, channels: list[Channel], weights=None):
             for c in channels]
 
 
-def neural_distance(features_a, features_b):
-    """Sum over selected channels of the pixel-mean squared difference (per batch element)."""
+def neural_distance(features_a, features_b, scale: float = PAPER_FEATURE_SCALE):
+    """Sum over selected channels of the pixel-mean squared difference (per batch element), of
+    features multiplied by ``scale`` (the paper's input scale: :data:`PAPER_FEATURE_SCALE`)."""
     import jax.numpy as jnp
 
-    return sum(jnp.mean((a - b) ** 2, axis=(-2, -1)) for a, b in zip(features_a, features_b))
+    return scale ** 2 * sum(jnp.mean((a - b) ** 2, axis=(-2, -1)) for a, b in zip(features_a, features_b))
