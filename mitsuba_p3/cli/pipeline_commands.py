@@ -126,9 +126,10 @@ def evaluate(
     with bar:
         results = run_evaluation(dataset, model, out, config, progress=track)
     summary = {k: {"accuracy": {s: round(100 * a["mean"], 1) for s, a in r["accuracy"].items()},
-                   "mean_adi_m": round(r["adi"]["mean"], 4)} for k, r in results.items()}
+                   "mean_adi_m": round(r["adi"]["mean"], 4),
+                   "attributes": {a: round(v, 3) for a, v in r["attributes"].items()}} for k, r in results.items()}
     tables = tables_dir(out, config.distance)
-    typer.echo((tables / "accuracy.md").read_text() + "\n" + (tables / "adi.md").read_text())
+    typer.echo("\n".join((tables / name).read_text() for name in ("accuracy.md", "adi.md", "attributes.md")))
     typer.echo(json.dumps({"run": str(out), "tables": str(tables), **summary}, indent=2))
 
 

@@ -106,3 +106,41 @@ def pose_summary(errors: list[dict]) -> tuple[dict, dict]:
     per_class = {name: summarise([e["adi"] for e in errors if e["class"] == name])
                  for name in sorted({e["class"] for e in errors})}
     return per_class, summarise([e["adi"] for e in errors])
+
+
+def attribute_recovery(dataset: Dataset, cached: dict, rules) -> tuple[list[dict], dict]:
+    """Per test image, the attributes its posterior decides (:mod:`mitsuba_p3.attributes`) against its
+    labels, and the summary: accuracy per attribute (shape overall and for large objects), the mean
+    log probability of the true shape (class frequencies with a 0.01 pseudo-count) and the ECE of
+    the shape posterior's confidence. Shapes outside the primitives (ood) are not scored."""
+    from ..shapes import SHAPES
+
+    rows = []
+    for index, post in cached.items():
+        label = dataset.shots[index].cls
+        decided = rules.decide(post.program.samples)
+        row = {"query": index, "class": label.name}
+        for attribute in ("shape", "material", "size", "colour"):
+            row[f"{attribute}_true"], row[f"{attribute}_decided"] = getattr(label, attribute), decided[attribute]
+        if label.shape in SHAPES:
+            counts = np.asarray(decided["shape_probabilities"]) * len(post.program.samples["class"]) + 0.01
+            row["shape_log_score"] = float(np.log(counts[SHAPES.index(label.shape)] / counts.sum()))
+            row["shape_confidence"] = float(max(decided["shape_probabilities"]))
+        row["p_metal"] = decided["p_metal"]
+        rows.append(row)
+    summary = {}
+    for attribute in ("shape", "material", "size", "colour"):
+        scored = [r for r in rows if attribute != "shape" or "shape_log_score" in r]
+        if scored:
+            summary[f"{attribute}_accuracy"] = float(np.mean([r[f"{attribute}_true"] == r[f"{attribute}_decided"]
+                                                              for r in scored]))
+    shaped = [r for r in rows if "shape_log_score" in r]
+    if shaped:
+        large = [r for r in shaped if r["size_true"] == "large"]
+        if large:
+            summary["shape_accuracy_large"] = float(np.mean([r["shape_true"] == r["shape_decided"] for r in large]))
+        summary["shape_log_score"] = float(np.mean([r["shape_log_score"] for r in shaped]))
+        summary["shape_ece"] = expected_calibration_error([r["shape_confidence"] for r in shaped],
+                                                          [r["shape_true"] == r["shape_decided"] for r in shaped])[0]
+    summary["images"] = len(rows)
+    return rows, summary

@@ -70,8 +70,26 @@ def write_tables(run_dir: Path, results: dict, baselines_dir: Path | None = None
             writer.writerow([likelihood, "all", result["adi"]["mean"], result["adi"]["median"],
                              result["adi"]["images"]])
     reliability_diagram(run_dir / "reliability.png", results, settings)
+    atomic_write(run_dir / "attributes.md", attribute_table(results))
     return {"accuracy": str(run_dir / "accuracy.md"), "adi": str(run_dir / "adi.md"),
-            "reliability": str(run_dir / "reliability.png")}
+            "attributes": str(run_dir / "attributes.md"), "reliability": str(run_dir / "reliability.png")}
+
+
+ATTRIBUTE_COLUMNS = (("shape_accuracy", "shape %"), ("shape_accuracy_large", "shape, large %"),
+                     ("material_accuracy", "material %"), ("size_accuracy", "size %"), ("colour_accuracy", "colour %"),
+                     ("shape_log_score", "log p(true shape)"), ("shape_ece", "shape ECE"))
+
+
+def attribute_table(results: dict) -> str:
+    """Markdown: the attributes each model's posteriors recover (:func:`.metrics.attribute_recovery`)."""
+    def cell(summary, key):
+        if key not in summary:
+            return "-"
+        return f"{100 * summary[key]:.1f}" if key.endswith("accuracy") or key.endswith("large") else f"{summary[key]:.3f}"
+
+    rows = [[model.upper()] + [cell(r.get("attributes", {}), key) for key, _ in ATTRIBUTE_COLUMNS]
+            for model, r in results.items()]
+    return markdown_table(["model"] + [title for _, title in ATTRIBUTE_COLUMNS], rows)
 
 
 def load_baselines(run_dir: Path) -> list[dict]:

@@ -50,6 +50,7 @@ class SceneOptConfig:
                                                          "shininess": 4.0})
     init_floor: dict = field(default_factory=lambda: {"colour": 0.5, "ambient": 0.1, "diffuse": 0.9})
     snapshots: int = 3     # train images whose render is kept after every epoch (figures)
+    refine_materials: bool = True   # exact least squares on the material bases after Adam (fit/materials.py)
 
     def __post_init__(self):
         check_counts(self, {"epochs": 1, "material_passes": 0, "global_passes": 0, "lights": 1, "pattern_size": 1,
@@ -226,8 +227,23 @@ def optimise_scene(dataset: Dataset, config: SceneOptConfig | None = None,
             curve.append({"epoch": epoch, "phase": phase, "pass": pass_index, "loss": float(np.mean(losses))})
         renders.append(snapshot())
 
+    if config.refine_materials:
+        from .materials import refine_materials
+
+        members = {key: [i for i in range(len(shots)) if keys[i] == key] for key in materials}
+        refined, _ = refine_materials(
+            renderer, {key: np.stack([dataset.image(shots[i]) for i in m]) for key, m in members.items()},
+            {key: [params_for(i) for i in m] for key, m in members.items()},
+            {key: _contract_material(m) for key, m in materials.items()})
+        for key, m in refined.items():
+            materials[key] = {"colour": np.asarray(m["colour"], np.float32), "ambient": np.float32(m["ambient"]),
+                              "diffuse": np.float32(m["diffuse"]), "specular": np.float32(m["specular"]),
+                              "log_shininess": np.float32(np.log(m["shininess"]))}
+
     final = float(np.mean([np.mean((renderer.render(params_for(i)) - dataset.image(shot)) ** 2)
                            for i, shot in enumerate(shots)]))
+    if config.refine_materials:
+        curve.append({"epoch": config.epochs, "phase": "refinement", "pass": 0, "loss": final})
     fitted = {k: {name: np.asarray(v).tolist() for name, v in _contract_material(m).items()}
               for k, m in materials.items()}
     snapshots = {"observations": np.stack([dataset.image(shots[i]) for i in snapshot_ids]),

@@ -1,0 +1,99 @@
+"""What a posterior says about the object's attributes: shape, material kind, size and colour.
+
+A posterior is a cloud of scene parameters; a person asks "is it a large red
+metal sphere?". :class:`AttributeRules` turns posterior samples into those words:
+
+- **shape**: the most frequent shape class among the draws (and its frequency);
+- **material kind** (rubber or metal): a logistic regression on the Phong
+  weights (k_a, k_d, k_s, log alpha), learnt from the materials the fit
+  optimised on the *train* classes, whose kinds the labels give; applied to the
+  posterior medians;
+- **size** (small or large): the protocol size nearest, in log space, to the
+  median of the posterior's half-extents;
+- **colour**: the colour name whose fitted train albedo (mean over that colour's
+  materials) is nearest to the posterior median colour; a colour never seen in
+  training falls back to its label RGB.
+
+Every rule is fitted on train classes or fixed by the protocol; nothing is tuned
+on test images.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .scene import COLOURS, SIZES
+from .shapes import SHAPES
+
+KINDS = ("rubber", "metal")
+
+
+def _weights(rows) -> np.ndarray:
+    """(n, 4) features of Phong weights: k_a, k_d, k_s, log alpha."""
+    rows = list(rows)
+    return np.array([[r["ambient"], r["diffuse"], r["specular"], np.log(max(r["shininess"], 1e-3))]
+                     for r in rows], np.float64)
+
+
+@dataclass
+class AttributeRules:
+    """Decision rules from posterior samples to attribute names (see the module docstring)."""
+
+    material_model: object | None           # a fitted sklearn pipeline, or None (one kind only)
+    only_kind: str | None                    # the kind when training had just one
+    colour_names: list[str]
+    colour_albedos: np.ndarray               # (colours, 3)
+
+    @classmethod
+    def from_materials(cls, materials: dict[str, dict], extra_colours: dict[str, tuple] | None = None
+                       ) -> "AttributeRules":
+        """Rules learnt from a fit's ``materials.json`` (keys ``colour-kind``, e.g. ``red-metal``)."""
+        from sklearn.linear_model import LogisticRegression
+        from sklearn.pipeline import make_pipeline
+        from sklearn.preprocessing import StandardScaler
+
+        keys = list(materials)
+        kinds = [key.rsplit("-", 1)[1] for key in keys]
+        present = sorted(set(kinds) & set(KINDS))
+        model, only = None, (present[0] if len(present) == 1 else None)
+        if len(present) == 2:
+            model = make_pipeline(StandardScaler(), LogisticRegression(C=1.0)).fit(
+                _weights(materials[k] for k in keys), np.array([KINDS.index(k) for k in kinds]))
+        albedos: dict[str, list] = {}
+        for key in keys:
+            albedos.setdefault(key.rsplit("-", 1)[0], []).append(materials[key]["colour"])
+        names = sorted(albedos)
+        centres = [np.mean(albedos[n], axis=0) for n in names]
+        for name, rgb in (extra_colours or {}).items():   # colours the fit never saw: their label RGB (0-255)
+            if name not in albedos:
+                names.append(name)
+                centres.append(np.asarray(rgb, np.float64) / 255.0)
+        return cls(model, only, names, np.array(centres, np.float64))
+
+    def decide(self, samples: dict) -> dict:
+        """Attribute names (and the shape's posterior probabilities) from posterior samples:
+        ``class`` (n,), ``scale`` (n, 3), ``colour`` (n, 3), ``ambient``/``diffuse``/``specular``/``shininess`` (n, 1)."""
+        counts = np.bincount(np.asarray(samples["class"], int).ravel(), minlength=len(SHAPES)).astype(float)
+        shape_probabilities = counts / counts.sum()
+        medians = {k: float(np.median(samples[k])) for k in ("ambient", "diffuse", "specular", "shininess")}
+        if self.material_model is not None:
+            metal = float(self.material_model.predict_proba(_weights([medians]))[0, 1])
+            kind = KINDS[int(metal > 0.5)]
+        else:
+            kind, metal = self.only_kind, float(self.only_kind == "metal")
+        half_extent = float(np.median(np.asarray(samples["scale"])))
+        size = min(SIZES, key=lambda s: abs(np.log(half_extent / SIZES[s])))
+        colour = np.median(np.asarray(samples["colour"]).reshape(-1, 3), axis=0)
+        nearest = self.colour_names[int(np.argmin(np.sum((self.colour_albedos - colour) ** 2, axis=1)))]
+        return {"shape": SHAPES[int(np.argmax(counts))], "shape_probabilities": shape_probabilities.tolist(),
+                "material": kind, "p_metal": metal, "size": size, "half_extent_m": half_extent, "colour": nearest}
+
+
+def rules_for(fitted, dataset=None) -> AttributeRules:
+    """The rules of a fitted model; a data set's colours the fit never saw join with their label RGB."""
+    extra = dict(COLOURS)
+    if dataset is not None:
+        labels = dataset.class_labels
+        extra.update({labels[name].colour: tuple(rgb) for name, rgb in dataset.rgb.items() if rgb})
+    return AttributeRules.from_materials(fitted.materials, extra)
