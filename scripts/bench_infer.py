@@ -1,74 +1,105 @@
-"""Inference benchmark: seconds per test image, ESS per second and R-hat, for both renderers.
+"""Inference benchmark over a benchmark's test split: speed, attribute recovery and agreement across seeds.
 
-Runs `infer_image` at the default settings (np3 likelihood, the default SamplerConfig)
-on one fixed fsclvr test image, once with Mitsuba (pure_callback) and once with the
-JAX tracer, and prints JSON. Needs a benchmark folder and a model fitted to it:
+For each sampler setting (``--configs``), samples the P3 posterior of every test image
+(or ``--images N`` of them, evenly spaced) with ``--seeds`` seeds, through the
+evaluation's cached, resumable, parallel posterior jobs (``OUT/CONFIG-seedS``; a killed
+run resumes), then prints JSON, the settings side by side:
+
+- ``seconds_per_image``: median wall-clock seconds of one posterior (workers share the cores);
+- attribute recovery (:func:`mitsuba_p3.evaluate.metrics.attribute_recovery`, first seed):
+  shape (all, large), material kind, size, colour, mean log p(true shape), shape ECE;
+- ``max_r_hat_across_seeds``: per image, the R-hat of shift, scale and colour with each
+  seed's run as one chain; the median and the 90th percentile over images;
+- ``log_evidence_spread``: for samplers that estimate an evidence (none of the MH settings).
+
+Settings: ``mh-paper`` is the MH evaluation preset with the paper's likelihood (sigma 1, no
+shadows), the project's old default; ``mh-fitted`` the same sampler with the fitted noise model
+(the default). Needs a benchmark folder and a model fitted to it:
 
     mitsuba-p3 benchmark generate fsclvr --out data/fsclvr
     mitsuba-p3 fit data/fsclvr --out data/models/fsclvr
-    python scripts/bench_infer.py [--dataset data/fsclvr] [--model data/models/fsclvr] [--image-index 0]
-
-Targets (issue 6): R-hat <= 1.05 and ESS >= 400 for shift, scale and colour in <= 30 s.
+    python scripts/bench_infer.py [--dataset data/fsclvr] [--model data/models/fsclvr] [--out out/bench-infer]
+        [--configs mh-paper,mh-fitted] [--seeds 4] [--images 120] [--jobs 2]
 """
 from __future__ import annotations
 
 import argparse
 import json
-import time
+import os
+from dataclasses import asdict, replace
+from pathlib import Path
 
 import numpy as np
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
+from mitsuba_p3.evaluate import (PRESET, CachedPosterior, EvaluationConfig, check_run, compute_posteriors,
+                                 posterior_path)
+from mitsuba_p3.evaluate.metrics import attribute_recovery
+from mitsuba_p3.fit.attributes import rules_for
 from mitsuba_p3.fit.model import FittedModel
-from mitsuba_p3.infer.mcmc import SamplerConfig
-from mitsuba_p3.infer.posterior import default_likelihood, infer_image
 
-TARGET_VARIABLES = ("shift", "scale", "colour")
+CONFIGS = {"mh-paper": {"noise": "paper"}, "mh-fitted": {"noise": "fitted"}}
+CHECKED = ("shift", "scale", "colour")
+
+
+def r_hat_across_seeds(runs: list[CachedPosterior]) -> float:
+    """The largest split-free R-hat of shift, scale and colour, each seed's draws one chain."""
+    import arviz as az
+
+    worst = 1.0
+    for name in CHECKED:
+        draws = [run.program.samples[name] for run in runs]
+        length = min(len(d) for d in draws)
+        values = np.stack([d[:length] for d in draws])            # (seeds, draws, dims)
+        for dim in range(values.shape[-1]):
+            worst = max(worst, float(az.rhat(values[..., dim], method="rank")))
+    return worst
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dataset", default="data/fsclvr")
     parser.add_argument("--model", default="data/models/fsclvr")
-    parser.add_argument("--image-index", type=int, default=0, help="index among the test images")
-    parser.add_argument("--likelihood", default="np3")
-    parser.add_argument("--renderers", default="mitsuba,jax")
+    parser.add_argument("--out", type=Path, default=Path("out/bench-infer"))
+    parser.add_argument("--configs", default="mh-paper,mh-fitted")
+    parser.add_argument("--seeds", type=int, default=4)
+    parser.add_argument("--images", type=int, default=None, help="evenly spaced test images (default: all)")
+    parser.add_argument("--jobs", type=int, default=len(os.sched_getaffinity(0)))
     args = parser.parse_args()
+    unknown = [c for c in args.configs.split(",") if c not in CONFIGS]
+    if unknown:
+        parser.error(f"unknown settings {unknown}; choose from {', '.join(CONFIGS)}")
     dataset = load_dataset(args.dataset)
-    shot = dataset.split("test")[args.image_index]
-    fitted = FittedModel(args.model)
-    observed = dataset.image(shot)
-    config = SamplerConfig()
-    results = {"image": str(shot.file), "truth": {"shape": shot.cls.shape, "shift": shot.position[:2].tolist(),
-                                                  "scale": shot.scale.tolist()},
-               "sampler": {k: v for k, v in vars(config).items()}, "likelihood": args.likelihood, "runs": {}}
-    for renderer in args.renderers.split(","):
-        # a short run first, so that compilation is not timed
-        infer_image(fitted, observed, default_likelihood(fitted, args.likelihood),
-                    SamplerConfig(chains=config.chains, steps=config.block, burn_in=0, tune_rounds=1,
-                                  tune_steps=config.block, init_candidates=config.init_candidates),
-                    renderer=renderer)
-        start = time.perf_counter()
-        posterior = infer_image(fitted, observed, default_likelihood(fitted, args.likelihood), config,
-                                renderer=renderer)
-        seconds = time.perf_counter() - start
-        summary = posterior.summary()
-        estimate = posterior.estimate()
-        targeted = summary[[any(i.startswith(v) for v in TARGET_VARIABLES) for i in summary.index]]
-        results["runs"][renderer] = {
-            "seconds": round(seconds, 2),
-            "acceptance": round(float(posterior.idata.sample_stats["accepted"].values.mean()), 3),
-            "ess_bulk": {k: round(float(v), 1) for k, v in summary["ess_bulk"].items()},
-            "ess_per_second": {k: round(float(v) / seconds, 2) for k, v in summary["ess_bulk"].items()},
-            "max_r_hat_targeted": round(float(targeted["r_hat"].max()), 3),
-            "min_ess_targeted": round(float(targeted["ess_bulk"].min()), 1),
-            "max_r_hat_all": round(float(summary["r_hat"].max()), 3),
-            "estimate": {"shape": estimate["shape"], "shift": np.round(estimate["shift"], 4).tolist(),
-                         "scale": np.round(estimate["scale"], 4).tolist(),
-                         "class_frequencies": estimate["class_frequencies"]},
-        }
-        print(json.dumps({renderer: results["runs"][renderer]}), flush=True)
-    print(json.dumps(results, indent=1))
+    tests = dataset.split("test")
+    if args.images:
+        tests = [tests[i] for i in np.unique(np.linspace(0, len(tests) - 1, args.images).astype(int))]
+    rules = rules_for(FittedModel(args.model), dataset)
+    report = {"dataset": args.dataset, "images": len(tests), "seeds": args.seeds, "sampler": asdict(PRESET),
+              "settings": {}}
+    for name in args.configs.split(","):
+        runs = []
+        for seed in range(args.seeds):
+            run_dir = args.out / f"{name}-seed{seed}"
+            config = EvaluationConfig(likelihoods=("p3",), sampler=replace(PRESET, seed=seed), jobs=args.jobs,
+                                      **CONFIGS[name])
+            check_run(run_dir, dataset, Path(args.model), config)
+            compute_posteriors(dataset, Path(args.model), run_dir, config, shots=[s.index for s in tests],
+                               progress=lambda d, t: print(f"\r{name} seed {seed}: {d}/{t}", end="", flush=True))
+            print(flush=True)
+            runs.append({s.index: CachedPosterior.load(posterior_path(run_dir, "p3", s.index), 500) for s in tests})
+        _, recovered = attribute_recovery(dataset, runs[0], rules)
+        seconds = [p.seconds for run in runs for p in run.values()]
+        entry = {"seconds_per_image": float(np.median(seconds)),
+                 **{k: round(v, 4) for k, v in recovered.items()},
+                 "max_r_hat_within_run_median": float(np.median([p.max_r_hat for p in runs[0].values()])),
+                 "log_evidence_spread": None}
+        if args.seeds > 1:
+            r_hats = [r_hat_across_seeds([run[s.index] for run in runs]) for s in tests]
+            entry["max_r_hat_across_seeds_median"] = float(np.median(r_hats))
+            entry["max_r_hat_across_seeds_p90"] = float(np.percentile(r_hats, 90))
+        report["settings"][name] = entry
+        print(json.dumps({name: entry}), flush=True)
+    print(json.dumps(report, indent=1))
 
 
 if __name__ == "__main__":

@@ -83,7 +83,9 @@ def infer(
         posterior = infer_image(fitted, observed, default_likelihood(fitted, likelihood, sigma, noise), config,
                                 renderer=renderer, progress=track, attrs={"image": str(image)})
     written = write_report(posterior, fitted, output, renderer=renderer)
-    typer.echo(json.dumps(written, indent=2))
+    decided = json.loads(Path(written["estimate"]).read_text())["attributes"]
+    typer.echo(json.dumps({**written, "attributes": {k: decided[k] for k in ("shape", "material", "size", "colour")}},
+                          indent=2))
 
 
 @app.command()

@@ -28,7 +28,7 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
                        (lambda done, total: progress("posteriors", done, total)) if progress else None)
     fewest = min(len(dataset.shots_of(c)) for c in dataset.classes("test"))
     settings = feasible_settings(len(dataset.classes("test")), fewest, config.queries_per_class)
-    from ..attributes import rules_for
+    from ..fit.attributes import rules_for
     from ..fit.model import FittedModel
 
     rules = rules_for(FittedModel(model_dir), dataset)

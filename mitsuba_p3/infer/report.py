@@ -7,6 +7,7 @@ import numpy as np
 
 from .. import plots
 from ..files import atomic_json
+from ..fit.attributes import rules_for
 from ..fit.model import FittedModel
 from ..space import render_params
 from .posterior import Posterior
@@ -40,7 +41,9 @@ def write_report(posterior: Posterior, fitted: FittedModel, out: str | Path, ren
     diagnostics = {"max_r_hat": float(summary["r_hat"].max()), "min_ess_bulk": float(summary["ess_bulk"].min())}
     attrs = dict(posterior.idata.posterior.attrs)
     estimate_file = out / "estimate.json"
-    atomic_json(estimate_file, {"estimate": estimate, "diagnostics": diagnostics,
+    draws = {name: posterior.draws(name) for name in ("scale", "colour", "ambient", "diffuse", "specular", "shininess")}
+    attributes = rules_for(fitted).decide({**draws, "class": posterior.draws("kappa")})
+    atomic_json(estimate_file, {"estimate": estimate, "attributes": attributes, "diagnostics": diagnostics,
                                 "seconds": attrs.get("seconds"), "acceptance": attrs.get("acceptance")})
     written["estimate"] = str(estimate_file)
 

@@ -10,9 +10,11 @@ metal sphere?". :class:`AttributeRules` turns posterior samples into those words
   posterior medians;
 - **size** (small or large): the protocol size nearest, in log space, to the
   median of the posterior's half-extents;
-- **colour**: the colour name whose fitted train albedo (mean over that colour's
-  materials) is nearest to the posterior median colour; a colour never seen in
-  training falls back to its label RGB.
+- **colour**: the colour name whose fitted train reflectance c (k_a + k_d) (mean
+  over that colour's materials) is nearest to the posterior median of the same
+  product. The product, not c alone: the image fixes c k_a and c k_d, while c and
+  the weights trade off along a ridge. A colour never seen in training falls back
+  to its label RGB times the train materials' mean k_a + k_d.
 
 Every rule is fitted on train classes or fixed by the protocol; nothing is tuned
 on test images.
@@ -23,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .scene import COLOURS, SIZES
-from .shapes import SHAPES
+from ..scene import COLOURS, SIZES
+from ..shapes import SHAPES
 
 KINDS = ("rubber", "metal")
 
@@ -34,6 +36,14 @@ def _weights(rows) -> np.ndarray:
     rows = list(rows)
     return np.array([[r["ambient"], r["diffuse"], r["specular"], np.log(max(r["shininess"], 1e-3))]
                      for r in rows], np.float64)
+
+
+def reflectance(material) -> np.ndarray:
+    """c (k_a + k_d): the colour the image identifies, (3,) for a material or (n, 3) for samples."""
+    colour = np.asarray(material["colour"], np.float64).reshape(-1, 3)
+    weight = (np.asarray(material["ambient"], np.float64) + np.asarray(material["diffuse"], np.float64)).reshape(-1, 1)
+    product = colour * weight
+    return product[0] if np.ndim(material["colour"]) == 1 else product
 
 
 @dataclass
@@ -62,13 +72,14 @@ class AttributeRules:
                 _weights(materials[k] for k in keys), np.array([KINDS.index(k) for k in kinds]))
         albedos: dict[str, list] = {}
         for key in keys:
-            albedos.setdefault(key.rsplit("-", 1)[0], []).append(materials[key]["colour"])
+            albedos.setdefault(key.rsplit("-", 1)[0], []).append(reflectance(materials[key]))
         names = sorted(albedos)
         centres = [np.mean(albedos[n], axis=0) for n in names]
+        weight = float(np.mean([materials[k]["ambient"] + materials[k]["diffuse"] for k in keys]))
         for name, rgb in (extra_colours or {}).items():   # colours the fit never saw: their label RGB (0-255)
             if name not in albedos:
                 names.append(name)
-                centres.append(np.asarray(rgb, np.float64) / 255.0)
+                centres.append(weight * np.asarray(rgb, np.float64) / 255.0)
         return cls(model, only, names, np.array(centres, np.float64))
 
     def decide(self, samples: dict) -> dict:
@@ -84,7 +95,7 @@ class AttributeRules:
             kind, metal = self.only_kind, float(self.only_kind == "metal")
         half_extent = float(np.median(np.asarray(samples["scale"])))
         size = min(SIZES, key=lambda s: abs(np.log(half_extent / SIZES[s])))
-        colour = np.median(np.asarray(samples["colour"]).reshape(-1, 3), axis=0)
+        colour = np.median(reflectance(samples), axis=0)
         nearest = self.colour_names[int(np.argmin(np.sum((self.colour_albedos - colour) ** 2, axis=1)))]
         return {"shape": SHAPES[int(np.argmax(counts))], "shape_probabilities": shape_probabilities.tolist(),
                 "material": kind, "p_metal": metal, "size": size, "half_extent_m": half_extent, "colour": nearest}
