@@ -192,7 +192,7 @@ class PosteriorCore:
         new_logdensity = state.logdensity + self.prior.log_prob(new) - self.prior.log_prob(z)
         return type(state)(jnp.where(accept, new, z), jnp.where(accept, new_logdensity, state.logdensity))
 
-    def material_move(self, key, state, observation):
+    def material_move(self, key, state, observation, tempering=1.0, log_prior=None):
         """Metropolis-within-Gibbs update of the materials of one chain's state: colour, then (k_a, k_d, k_s).
 
         One render of the material bases (:meth:`render_bases` of the renderers) makes
@@ -204,6 +204,10 @@ class PosteriorCore:
         proposal, accepted by MH with the exact log joint, computed from the bases
         without another render (clipping, truncation and the neural term included).
         Returns (new state, both accepted).
+
+        For a tempered target ``log_prior(z) + tempering * log p(I | z)`` (sequential Monte Carlo),
+        pass ``tempering`` and the prior (default: :meth:`Prior.log_prob`); ``state.logdensity`` is
+        then that target's value.
         """
         import jax
         import jax.numpy as jnp
@@ -216,9 +220,10 @@ class PosteriorCore:
                                   axis=-2).reshape(-1, 12)                       # (pixels, 4 x 3)
         full = (vectors.T @ vectors).reshape(4, 3, 4, 3)                            # one matmul: XLA's fast path
         # the Gaussian part of the likelihood: precision power / sigma^2 (outliers are left to the MH test)
-        gram = jnp.einsum("icjc->cij", full) * (self.config.power / self.config.sigma ** 2)
-        state, colour_ok = self._colour_move(k_colour, state, bases, gram, observation)
-        state, weights_ok = self._weights_move(k_weights, state, bases, gram, observation)
+        gram = jnp.einsum("icjc->cij", full) * (tempering * self.config.power / self.config.sigma ** 2)
+        target = (tempering, log_prior or self.prior.log_prob)
+        state, colour_ok = self._colour_move(k_colour, state, bases, gram, observation, target)
+        state, weights_ok = self._weights_move(k_weights, state, bases, gram, observation, target)
         return state, colour_ok & weights_ok
 
     def _image_from_bases(self, bases, z):
@@ -229,7 +234,7 @@ class PosteriorCore:
         A, D, S, F = (bases[..., i, :] for i in range(4))
         return jnp.clip(p["colour"] * (p["ambient"] * A + p["diffuse"] * D) + p["specular"] * S + F, 0.0, 1.0)
 
-    def _colour_move(self, key, state, bases, gram, observation):
+    def _colour_move(self, key, state, bases, gram, observation, target):
         """The colour's conditional given the weights: a 3-D Gaussian mixture (one per GMM component)."""
         import jax
         import jax.numpy as jnp
@@ -262,9 +267,9 @@ class PosteriorCore:
         current = jnp.asarray(gmm.mean) + jnp.asarray(gmm.std) * position[cols]
         new_position = position.at[cols].set((proposal - gmm.mean) / gmm.std)
         return self._independence_mh(k_accept, state, new_position, bases, log_q(current) - log_q(proposal),
-                                     observation)
+                                     observation, target)
 
-    def _weights_move(self, key, state, bases, gram, observation):
+    def _weights_move(self, key, state, bases, gram, observation, target):
         """The weights' conditional given the colour: a mixture of 8 trivariate Gaussians
         (their priors are independent 2-component GMMs)."""
         import itertools
@@ -310,16 +315,18 @@ class PosteriorCore:
         current = loc + std * position[dims]
         new_position = position.at[dims].set((proposal - loc) / std)
         return self._independence_mh(k_accept, state, new_position, bases, log_q(current) - log_q(proposal),
-                                     observation)
+                                     observation, target)
 
-    def _independence_mh(self, key, state, new_position, bases, log_q_ratio, observation):
-        """Accept or reject an independence proposal with the exact log joint (image from the bases)."""
+    def _independence_mh(self, key, state, new_position, bases, log_q_ratio, observation, target):
+        """Accept or reject an independence proposal with the exact (tempered) log joint, the image
+        computed from the bases."""
         import jax
         import jax.numpy as jnp
 
+        tempering, log_prior = target
         image = self._image_from_bases(bases, new_position)
-        new_logdensity = (self.prior.log_prob(new_position)
-                          + score(observation, image[None], self.config, self.channels)[0])
+        new_logdensity = (log_prior(new_position)
+                          + tempering * score(observation, image[None], self.config, self.channels)[0])
         accept = jnp.log(jax.random.uniform(key)) < new_logdensity - state.logdensity + log_q_ratio
         return (type(state)(jnp.where(accept, new_position, state.position),
                             jnp.where(accept, new_logdensity, state.logdensity)), accept)

@@ -21,6 +21,7 @@ from ..space import coordinate_names
 from ..shapes import SHAPES
 from .likelihood import NOISES, LikelihoodConfig
 from .mcmc import SamplerConfig, SamplerRun, sample
+from .smc import SMCConfig, sample_smc
 from .model import PosteriorModel
 
 SUMMARY_VARIABLES = ("shift", "theta", "scale", "colour", "ambient", "diffuse", "specular", "shininess")
@@ -114,16 +115,20 @@ def to_inference_data(model: PosteriorModel, run: SamplerRun, observed: np.ndarr
 
 
 def infer_image(fitted: FittedModel, observed: np.ndarray, likelihood: LikelihoodConfig | None = None,
-                sampler: SamplerConfig | None = None, renderer: str = "mitsuba",
+                sampler: SamplerConfig | SMCConfig | None = None, renderer: str = "mitsuba",
                 progress: Callable[[str, int, int], None] | None = None, attrs: dict | None = None) -> Posterior:
-    """Sample the posterior over one observed image's scene."""
+    """Sample the posterior over one observed image's scene: multi-chain MH (a :class:`SamplerConfig`)
+    or tempered SMC over the shape x material hypotheses (an :class:`SMCConfig`)."""
     import time
 
     likelihood = likelihood or default_likelihood(fitted, "np3")
     sampler = sampler or SamplerConfig()
     model = PosteriorModel(fitted, observed, likelihood, renderer)
     start = time.perf_counter()
-    run = sample(model.core.target(sampler.material_gibbs), sampler, progress, observation=model.observation)
+    if isinstance(sampler, SMCConfig):
+        run = sample_smc(model.core, model.observation, sampler, progress)
+    else:
+        run = sample(model.core.target(sampler.material_gibbs), sampler, progress, observation=model.observation)
     seconds = time.perf_counter() - start
     info = {"model": str(fitted.root), "likelihood": likelihood.kind, "sigma": likelihood.sigma,
             "noise": asdict(likelihood),

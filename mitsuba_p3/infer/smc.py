@@ -1,0 +1,258 @@
+"""Tempered sequential Monte Carlo over the discrete hypotheses: shape class x material kind.
+
+A random walk over a relaxed one-hot class cannot cross between shape modes once
+the likelihood is sharp. Here each hypothesis h (sphere, cube or cylinder, times
+the matte or shiny component of the specular prior) is a posterior of its own,
+over the continuous parameters, and its *evidence* Z_h = p(I | h) decides between
+them:
+
+    p(h | I) = p(h) Z_h / sum_h' p(h') Z_h',    p(h) = 1/3 x (weight of h's specular component).
+
+Each hypothesis runs a tempered SMC (Del Moral et al. 2006; blackjax's
+``adaptive_tempered_smc`` is the same algorithm): N particles drawn from the prior
+given h move through the targets p(z | h) p(I | z)^lambda as lambda rises from 0
+to 1. Each step chooses the increment of lambda by bisection so that the
+incremental weights keep an effective sample size of ``target_ess`` N, adds
+log mean exp(dlambda log p(I | z)) to log Z_h, resamples (systematic), and moves
+every particle with ``mcmc_steps`` sweeps of the moves the MH sampler uses: a
+Gaussian random walk (covariance 2.38^2 / d times the particles' own, scaled
+towards 25% acceptance), the symmetry move, and the material Metropolis-within-
+Gibbs update, all at the current temperature. All particles of all hypotheses
+are scored in one batched render per move.
+
+Within a hypothesis the class logits are fixed (they play no role) and the
+specular weight's prior is the one Gaussian component of h; the rest of the prior
+is the model's. The result is a :class:`~mitsuba_p3.infer.mcmc.SamplerRun` of
+draws from the mixture over hypotheses, with each hypothesis's log evidence and
+weight in its statistics.
+"""
+from __future__ import annotations
+
+import functools
+import time
+from dataclasses import asdict, dataclass
+from typing import Callable, NamedTuple
+
+import numpy as np
+
+from ..shapes import SHAPES
+from ..space import HYPOTHESES, MATERIAL_KINDS, SLICES
+from .mcmc import SamplerRun
+
+# class logits (z_kappa) that put a point firmly in each shape class: softmax([z1, z2, 0])
+CLASS_LOGITS = np.array([[8.0, 0.0], [0.0, 8.0], [-8.0, -8.0]], np.float32)
+
+
+@dataclass(frozen=True)
+class SMCConfig:
+    particles: int = 32            # per hypothesis
+    mcmc_steps: int = 3            # move sweeps per temperature
+    target_ess: float = 0.5        # of the incremental weights, as a share of the particles
+    max_temperatures: int = 40
+    draws: int = 400               # posterior draws returned (resampled from the mixture)
+    seed: int = 0
+
+    def __post_init__(self):
+        from ..errors import ConfigError, check_counts
+
+        check_counts(self, {"particles": 4, "mcmc_steps": 1, "max_temperatures": 1, "draws": 4, "seed": 0}, "smc ")
+        if not 0.0 < self.target_ess < 1.0:
+            raise ConfigError(f"smc target-ess must lie in (0, 1); got {self.target_ess}")
+
+
+class SMCState(NamedTuple):
+    """Particles of every hypothesis: positions (H, N, d), log likelihoods and log priors (H, N)."""
+    position: np.ndarray
+    loglikelihood: np.ndarray
+    logprior: np.ndarray
+
+
+def hypothesis_priors(prior) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per hypothesis: log p(h), and the mean and sd of its specular component in the unconstrained z."""
+    g = prior.gmms["specular"]
+    order = np.argsort(g.means[:, 0])                  # matte: the lower component
+    components = list(order) if len(order) == len(MATERIAL_KINDS) else [order[0]] * len(MATERIAL_KINDS)
+    weights = np.array([g.weights[c] if len(order) > 1 else 0.5 for c in components])
+    log_p = np.array([np.log(1 / len(SHAPES)) + np.log(weights[k]) for _ in SHAPES for k in range(len(components))])
+    means = np.array([(g.means[c, 0] - g.mean[0]) / g.std[0] for _ in SHAPES for c in components])
+    sds = np.array([np.sqrt(g.variances[c, 0]) / g.std[0] for _ in SHAPES for c in components])
+    return log_p, means, sds
+
+
+def initial_particles(prior, rng: np.random.Generator, particles: int) -> np.ndarray:
+    """(H, N, 15) draws from the prior given each hypothesis."""
+    _, means, sds = hypothesis_priors(prior)
+    z = prior.sample(rng, len(HYPOTHESES) * particles).reshape(len(HYPOTHESES), particles, -1).astype(np.float32)
+    for h in range(len(HYPOTHESES)):
+        z[h, :, SLICES["kappa"]] = CLASS_LOGITS[h // len(MATERIAL_KINDS)]
+        z[h, :, SLICES["specular"].start] = means[h] + sds[h] * rng.standard_normal(particles)
+    return z
+
+
+def hypothesis_log_prior(prior):
+    """log p(z | h) for one position and hypothesis index (JAX): the model's prior without the class
+    term, with the specular weight's density that of h's component."""
+    import jax.numpy as jnp
+    from jax.scipy.stats import norm
+
+    _, means, sds = hypothesis_priors(prior)
+    spec = SLICES["specular"].start
+
+    def log_prior(z, h):
+        parts = prior.log_prob_parts(z)
+        rest = sum(v for k, v in parts.items() if k not in ("kappa", "specular"))
+        return rest + norm.logpdf(z[spec], jnp.asarray(means)[h], jnp.asarray(sds)[h])
+
+    return log_prior
+
+
+def next_increment(loglikelihood: np.ndarray, remaining: float, target_ess: float) -> float:
+    """The largest tempering increment <= ``remaining`` whose incremental weights keep ESS >= target."""
+    def ess(step):
+        w = step * (loglikelihood - loglikelihood.max())
+        w = np.exp(w - w.max())
+        return w.sum() ** 2 / np.sum(w ** 2) / len(w)
+
+    if ess(remaining) >= target_ess:
+        return remaining
+    low, high = 0.0, remaining
+    for _ in range(40):
+        middle = 0.5 * (low + high)
+        low, high = (middle, high) if ess(middle) >= target_ess else (low, middle)
+    return max(low, 1e-6)
+
+
+def systematic_resample(rng: np.random.Generator, log_weights: np.ndarray) -> np.ndarray:
+    w = np.exp(log_weights - log_weights.max())
+    cumulative = np.cumsum(w / w.sum())
+    positions = (rng.uniform() + np.arange(len(w))) / len(w)
+    return np.minimum(np.searchsorted(cumulative, positions), len(w) - 1)
+
+
+@functools.lru_cache(maxsize=4)
+def _kernels(core, walk_mask: tuple):
+    """Jitted (score, move) for one :class:`PosteriorCore`: scores of all particles, and one sweep of
+    moves of all particles at per-hypothesis temperatures."""
+    import jax
+    import jax.numpy as jnp
+    from blackjax.mcmc.random_walk import RWState
+
+    log_prior = hypothesis_log_prior(core.prior)
+    mask = jnp.asarray(walk_mask, jnp.float32)
+    hypotheses = len(HYPOTHESES)
+
+    def loglik_all(z, observation):                               # (H, N, d) -> (H, N)
+        flat = z.reshape(-1, z.shape[-1])
+        return jax.vmap(lambda p: core.log_likelihood(p, observation))(flat).reshape(z.shape[:2])
+
+    def logprior_all(z):
+        h = jnp.broadcast_to(jnp.arange(hypotheses)[:, None], z.shape[:2])
+        return jax.vmap(jax.vmap(log_prior))(z, h)
+
+    @jax.jit
+    def score(z, observation):
+        return loglik_all(z, observation), logprior_all(z)
+
+    @jax.jit
+    def sweep(key, state, tempering, tril, observation):
+        """Walk (with the symmetry move), then the material update; returns (state, walk acceptance (H,))."""
+        k_walk, k_accept, k_symmetry, k_material = jax.random.split(key, 4)
+        z, loglik, logprior = state
+        noise = jax.random.normal(k_walk, z.shape) * mask
+        proposed = z + jnp.einsum("hij,hnj->hni", tril, noise)
+        new_loglik, new_logprior = loglik_all(proposed, observation), logprior_all(proposed)
+        log_ratio = new_logprior + tempering[:, None] * new_loglik - logprior - tempering[:, None] * loglik
+        accept = jnp.log(jax.random.uniform(k_accept, loglik.shape)) < log_ratio
+        z = jnp.where(accept[..., None], proposed, z)
+        loglik, logprior = jnp.where(accept, new_loglik, loglik), jnp.where(accept, new_logprior, logprior)
+        # symmetry: no render; the tempered density changes only through the yaw prior
+        flat = RWState(z.reshape(-1, z.shape[-1]), logprior.reshape(-1))
+        turned = jax.vmap(core.symmetry_move)(jax.random.split(k_symmetry, flat.position.shape[0]), flat)
+        z, logprior = turned.position.reshape(z.shape), turned.logdensity.reshape(logprior.shape)
+        # material Metropolis-within-Gibbs at each hypothesis's temperature
+        h = jnp.repeat(jnp.arange(hypotheses), z.shape[1])
+        lam = jnp.repeat(tempering, z.shape[1])
+
+        def material(key, position, logprior_value, loglik_value, index, lam_value):
+            state = RWState(position, logprior_value + lam_value * loglik_value)
+            new, _ = core.material_move(key, state, observation, lam_value, lambda p: log_prior(p, index))
+            return new.position
+
+        keys = jax.random.split(k_material, h.shape[0])
+        moved = jax.vmap(material)(keys, z.reshape(-1, z.shape[-1]), logprior.reshape(-1), loglik.reshape(-1),
+                                   h, lam).reshape(z.shape)
+        new_loglik, new_logprior = loglik_all(moved, observation), logprior_all(moved)
+        return SMCState(moved, new_loglik, new_logprior), accept.mean(axis=1)
+
+    return score, sweep
+
+
+def sample_smc(core, observation, config: SMCConfig | None = None,
+               progress: Callable[[str, int, int], None] | None = None) -> SamplerRun:
+    """Tempered SMC of every hypothesis of one image (see the module docstring)."""
+    import jax
+    import jax.numpy as jnp
+
+    config = config or SMCConfig()
+    start = time.perf_counter()
+    rng = np.random.default_rng(config.seed)
+    key = jax.random.PRNGKey(config.seed)
+    mask = np.ones(15, np.float32)
+    for name in ("kappa", "colour", "ambient", "diffuse", "specular"):
+        mask[SLICES[name]] = 0.0          # fixed by the hypothesis, or the material update's business
+    score, sweep = _kernels(core, tuple(mask.tolist()))
+    z = initial_particles(core.prior, rng, config.particles)
+    loglik, logprior = (np.array(a) for a in score(jnp.asarray(z), observation))
+    hypotheses = len(HYPOTHESES)
+    tempering, log_evidence = np.zeros(hypotheses), np.zeros(hypotheses)
+    scale = np.full(hypotheses, 1.0)
+    acceptance_history, steps = [], 0
+    while np.any(tempering < 1.0) and steps < config.max_temperatures:
+        steps += 1
+        for h in range(hypotheses):
+            if tempering[h] >= 1.0:
+                continue
+            ll = np.where(np.isfinite(loglik[h]), loglik[h], -1e30)
+            step = next_increment(ll, 1.0 - tempering[h], config.target_ess)
+            if steps == config.max_temperatures:
+                step = 1.0 - tempering[h]
+            log_w = step * ll
+            log_evidence[h] += np.logaddexp.reduce(log_w) - np.log(len(log_w))
+            tempering[h] = min(1.0, tempering[h] + step)
+            index = systematic_resample(rng, log_w)
+            z[h], loglik[h], logprior[h] = z[h][index], loglik[h][index], logprior[h][index]
+        # walk covariance per hypothesis from its particles (moved dimensions only)
+        moved = mask > 0
+        tril = np.zeros((hypotheses, 15, 15), np.float32)
+        for h in range(hypotheses):
+            cov = np.cov(z[h][:, moved], rowvar=False) + 1e-6 * np.eye(moved.sum())
+            tril[h][np.ix_(moved, moved)] = np.linalg.cholesky(cov) * 2.38 / np.sqrt(moved.sum()) * scale[h]
+        state = SMCState(jnp.asarray(z), jnp.asarray(loglik), jnp.asarray(logprior))
+        rates = []
+        for _ in range(config.mcmc_steps):
+            key, sub = jax.random.split(key)
+            state, accepted = sweep(sub, state, jnp.asarray(tempering, jnp.float32), jnp.asarray(tril), observation)
+            rates.append(np.asarray(accepted))
+        z, loglik, logprior = (np.array(a) for a in state)
+        rate = np.mean(rates, axis=0)
+        scale *= np.clip(np.exp(2.0 * (rate - 0.25)), 0.5, 2.0)   # towards 25% walk acceptance
+        acceptance_history.append(rate.tolist())
+        if progress:
+            progress("smc", int(100 * tempering.min()), 100)
+    log_prior_h, _, _ = hypothesis_priors(core.prior)
+    log_posterior = log_prior_h + log_evidence
+    weights = np.exp(log_posterior - np.logaddexp.reduce(log_posterior))
+    # draws: hypotheses by their posterior weight, particles uniformly (equal weights after resampling)
+    chains = 4
+    per_chain = max(1, config.draws // chains)
+    chosen_h = rng.choice(hypotheses, size=chains * per_chain, p=weights)
+    chosen_n = rng.integers(config.particles, size=chains * per_chain)
+    positions = z[chosen_h, chosen_n].reshape(chains, per_chain, -1)
+    logdensity = (logprior + loglik)[chosen_h, chosen_n].reshape(chains, per_chain)
+    statistics = {"hypotheses": {name: {"log_evidence": float(log_evidence[h]), "weight": float(weights[h])}
+                                 for h, name in enumerate(HYPOTHESES)},
+                  "temperatures": steps, "walk_acceptance": float(np.mean(acceptance_history[-1])),
+                  "seconds": time.perf_counter() - start}
+    return SamplerRun(positions.astype(np.float32), logdensity.astype(np.float32),
+                      np.ones((chains, per_chain), bool), {}, [{"acceptance": a} for a in acceptance_history],
+                      {"sampler": "smc", **asdict(config)}, statistics)
