@@ -14,7 +14,7 @@ run resumes), then prints JSON, the settings side by side:
 
 Settings: ``mh-paper`` is the MH evaluation preset with the paper's likelihood (sigma 1, no
 shadows), the project's old default; ``mh-fitted`` the same sampler with the fitted noise model
-(the default). Needs a benchmark folder and a model fitted to it:
+(the default); ``smc-fitted`` tempered SMC over the hypotheses with the fitted noise model. Needs a benchmark folder and a model fitted to it:
 
     mitsuba-p3 benchmark generate fsclvr --out data/fsclvr
     mitsuba-p3 fit data/fsclvr --out data/models/fsclvr
@@ -37,8 +37,10 @@ from mitsuba_p3.evaluate import (PRESET, CachedPosterior, EvaluationConfig, chec
 from mitsuba_p3.evaluate.metrics import attribute_recovery
 from mitsuba_p3.fit.attributes import rules_for
 from mitsuba_p3.fit.model import FittedModel
+from mitsuba_p3.infer.smc import SMCConfig
 
-CONFIGS = {"mh-paper": {"noise": "paper"}, "mh-fitted": {"noise": "fitted"}}
+CONFIGS = {"mh-paper": {"noise": "paper"}, "mh-fitted": {"noise": "fitted"},
+           "smc-fitted": {"noise": "fitted", "sampler": SMCConfig()}}
 CHECKED = ("shift", "scale", "colour")
 
 
@@ -54,6 +56,15 @@ def r_hat_across_seeds(runs: list[CachedPosterior]) -> float:
         for dim in range(values.shape[-1]):
             worst = max(worst, float(az.rhat(values[..., dim], method="rank")))
     return worst
+
+
+def _evidence_spread(runs: list[dict]) -> float | None:
+    """Median over images of the largest (over hypotheses) spread (max - min) of log evidence across seeds."""
+    first = next(iter(runs[0].values()), None)
+    if len(runs) < 2 or first is None or first.log_evidence is None:
+        return None
+    spreads = [float(np.max(np.ptp(np.stack([run[i].log_evidence for run in runs]), axis=0))) for i in runs[0]]
+    return float(np.median(spreads))
 
 
 def main() -> None:
@@ -74,14 +85,14 @@ def main() -> None:
     if args.images:
         tests = [tests[i] for i in np.unique(np.linspace(0, len(tests) - 1, args.images).astype(int))]
     rules = rules_for(FittedModel(args.model), dataset)
-    report = {"dataset": args.dataset, "images": len(tests), "seeds": args.seeds, "sampler": asdict(PRESET),
-              "settings": {}}
+    report = {"dataset": args.dataset, "images": len(tests), "seeds": args.seeds, "settings": {}}
     for name in args.configs.split(","):
         runs = []
         for seed in range(args.seeds):
             run_dir = args.out / f"{name}-seed{seed}"
-            config = EvaluationConfig(likelihoods=("p3",), sampler=replace(PRESET, seed=seed), jobs=args.jobs,
-                                      **CONFIGS[name])
+            settings = CONFIGS[name]
+            sampler = replace(settings.get("sampler", PRESET), seed=seed)
+            config = EvaluationConfig(likelihoods=("p3",), sampler=sampler, jobs=args.jobs, noise=settings["noise"])
             check_run(run_dir, dataset, Path(args.model), config)
             compute_posteriors(dataset, Path(args.model), run_dir, config, shots=[s.index for s in tests],
                                progress=lambda d, t: print(f"\r{name} seed {seed}: {d}/{t}", end="", flush=True))
@@ -89,10 +100,10 @@ def main() -> None:
             runs.append({s.index: CachedPosterior.load(posterior_path(run_dir, "p3", s.index), 500) for s in tests})
         _, recovered = attribute_recovery(dataset, runs[0], rules)
         seconds = [p.seconds for run in runs for p in run.values()]
-        entry = {"seconds_per_image": float(np.median(seconds)),
+        entry = {"sampler": asdict(sampler), "seconds_per_image": float(np.median(seconds)),
                  **{k: round(v, 4) for k, v in recovered.items()},
                  "max_r_hat_within_run_median": float(np.median([p.max_r_hat for p in runs[0].values()])),
-                 "log_evidence_spread": None}
+                 "log_evidence_spread": _evidence_spread(runs)}
         if args.seeds > 1:
             r_hats = [r_hat_across_seeds([run[s.index] for run in runs]) for s in tests]
             entry["max_r_hat_across_seeds_median"] = float(np.median(r_hats))

@@ -10,7 +10,19 @@ import typer
 
 from ..evaluate.config import PRESET
 from ..infer.mcmc import SamplerConfig
+from ..infer.smc import SMCConfig
 from .app import app, phase_progress_bar, progress_bar, sampler_option
+
+
+def choose_sampler(name: str, mh: SamplerConfig, particles: int) -> SamplerConfig | SMCConfig:
+    """The sampler a command's --sampler names: the MH settings given, or SMC with their seed."""
+    from ..errors import ConfigError
+
+    if name == "mh":
+        return mh
+    if name == "smc":
+        return SMCConfig(particles=particles, seed=mh.seed)
+    raise ConfigError(f"unknown sampler {name!r}; choose mh or smc")
 
 
 @app.command()
@@ -59,6 +71,9 @@ def infer(
     burn_in: int = sampler_option("burn_in", SamplerConfig),
     tune_rounds: int = sampler_option("tune_rounds", SamplerConfig),
     tune_steps: int = sampler_option("tune_steps", SamplerConfig),
+    sampler: str = typer.Option("mh", help="mh (multi-chain Metropolis-Hastings; the chain options apply) or smc "
+                                           "(tempered SMC over the shape x material hypotheses)."),
+    particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
     likelihood: str = typer.Option("np3", help="p3 (colour) or np3 (colour + neural)."),
     noise: str = typer.Option("fitted", help="Noise model: fitted (the model's, from its train residuals) or paper "
                                              "(sigma 1, no outliers, no shadows)."),
@@ -75,8 +90,9 @@ def infer(
 
     fitted = FittedModel(model)
     observed = load_observation(image)
-    config = SamplerConfig(chains=chains, steps=steps, burn_in=burn_in, tune_rounds=tune_rounds,
-                           tune_steps=tune_steps, seed=seed)
+    config = choose_sampler(sampler, SamplerConfig(chains=chains, steps=steps, burn_in=burn_in,
+                                                   tune_rounds=tune_rounds, tune_steps=tune_steps, seed=seed),
+                            particles)
     bar, track = phase_progress_bar("sampling")
 
     with bar:
@@ -102,6 +118,9 @@ def evaluate(
     burn_in: int = sampler_option("burn_in", SamplerConfig),
     tune_rounds: int = sampler_option("tune_rounds", SamplerConfig),
     tune_steps: int = sampler_option("tune_steps", SamplerConfig),
+    sampler: str = typer.Option("mh", help="mh (multi-chain Metropolis-Hastings; the chain options apply) or smc "
+                                           "(tempered SMC over the shape x material hypotheses)."),
+    particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
     noise: str = typer.Option("fitted", help="Noise model: fitted (the model's, from its train residuals) or paper "
                                              "(sigma 1, no outliers, no shadows)."),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
@@ -121,8 +140,9 @@ def evaluate(
     config = EvaluationConfig(likelihoods=chosen, sigma=sigma, noise=noise, renderer=renderer, episodes=episodes,
                               jobs=jobs,
                               dask=dask, distance=DistanceConfig(properties=parse_properties(distance)),
-                              sampler=SamplerConfig(chains=chains, steps=steps, burn_in=burn_in,
-                                                    tune_rounds=tune_rounds, tune_steps=tune_steps, seed=seed))
+                              sampler=choose_sampler(sampler, SamplerConfig(
+                                  chains=chains, steps=steps, burn_in=burn_in, tune_rounds=tune_rounds,
+                                  tune_steps=tune_steps, seed=seed), particles))
     bar, track = phase_progress_bar("posteriors")
 
     with bar:

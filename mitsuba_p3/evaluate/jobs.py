@@ -97,8 +97,18 @@ def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str,
                   shift=np.asarray(estimate["shift"], np.float64), yaw=np.float64(estimate["theta"]),
                   kappa=np.int64(estimate["kappa"]), seconds=np.float64(seconds),
                   max_r_hat=np.float64(summary["r_hat"].max()), min_ess=np.float64(summary["ess_bulk"].min()),
-                  render_threads=np.int64(_render_threads()))
+                  render_threads=np.int64(_render_threads()), **_evidence(posterior))
     return out
+
+
+def _evidence(posterior) -> dict:
+    """Per hypothesis log evidence and weight, when the sampler estimated them (SMC)."""
+    hypotheses = posterior.idata.posterior.attrs.get("hypotheses")
+    if hypotheses is None:
+        return {}
+    values = json.loads(hypotheses) if isinstance(hypotheses, str) else hypotheses
+    return {"log_evidence": np.array([v["log_evidence"] for v in values.values()], np.float64),
+            "hypothesis_weights": np.array([v["weight"] for v in values.values()], np.float64)}
 
 
 @dataclass
@@ -112,6 +122,7 @@ class CachedPosterior:
     seconds: float
     max_r_hat: float
     min_ess: float
+    log_evidence: np.ndarray | None = None       # per hypothesis (space.HYPOTHESES), SMC only
 
     @classmethod
     def load(cls, path: Path, max_points: int) -> "CachedPosterior":
@@ -119,7 +130,8 @@ class CachedPosterior:
             samples = {name: f[f"sample_{name}"].astype(np.float64) for name in CONTINUOUS}
             samples["class"] = f["sample_class"].astype(int)
             return cls(ProtoProgram(samples, max_points), f["shift"], float(f["yaw"]), int(f["kappa"]),
-                       float(f["seconds"]), float(f["max_r_hat"]), float(f["min_ess"]))
+                       float(f["seconds"]), float(f["max_r_hat"]), float(f["min_ess"]),
+                       f["log_evidence"] if "log_evidence" in f.files else None)
 
 
 def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: EvaluationConfig) -> None:

@@ -67,15 +67,17 @@ def refine_materials(renderer, images: dict[str, np.ndarray], params: dict[str, 
     refined materials (colour, ambient, diffuse, specular, shininess) and each one's squared error."""
     refined, errors = {}, {}
     for key, start in materials.items():
+        # the current shininess first: another must lower the error by more than a hair to replace it
+        # (with no highlight in view every shininess fits alike, and the prior should not learn a random one)
         best = None
-        for alpha in sorted({*grid, float(start["shininess"])}):
+        for alpha in [float(start["shininess"])] + sorted(set(grid) - {float(start["shininess"])}):
             # one batched render of every image of the material: object parameters stacked, globals shared
             batch = {name: (np.stack([np.asarray(p[name]) for p in params[key]]) if name in OBJECT_KEYS else value)
                      for name, value in params[key][0].items()}
             batch["shininess"] = np.full(len(params[key]), alpha, np.float32)
             bases = renderer.render_bases(batch)
             material, error = fit_material(images[key], bases, np.asarray(start["colour"]))
-            if best is None or error < best[1]:
+            if best is None or error < best[1] * (1.0 - 1e-4):
                 best = ({**material, "shininess": alpha}, error)
         refined[key] = {name: (np.asarray(v).tolist() if name == "colour" else float(v))
                         for name, v in best[0].items()}
