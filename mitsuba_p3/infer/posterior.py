@@ -109,8 +109,9 @@ def to_inference_data(model: PosteriorModel, run: SamplerRun, observed: np.ndarr
         observed_data={"image": observed},
         dims={**dims, "image": ["row", "column", "channel"]}, coords=coords,
     )
-    idata.posterior.attrs.update({k: json.dumps(v) if not isinstance(v, (str, int, float)) else v
-                                  for k, v in attrs.items()})
+    # netCDF attributes hold strings and numbers: anything else (booleans included) as JSON
+    idata.posterior.attrs.update({k: v if isinstance(v, (str, int, float)) and not isinstance(v, bool) else
+                                  json.dumps(v) for k, v in attrs.items()})
     return Posterior(idata)
 
 

@@ -46,16 +46,18 @@ CLASS_LOGITS = np.array([[8.0, 0.0], [0.0, 8.0], [-8.0, -8.0]], np.float32)
 @dataclass(frozen=True)
 class SMCConfig:
     particles: int = 32            # per hypothesis
+    oversample: int = 8            # prior draws per particle at the start (the first reweighting picks N of them)
     mcmc_steps: int = 3            # move sweeps per temperature
+    final_steps: int = 6           # extra sweeps at lambda = 1, to spread the resampled particles again
     target_ess: float = 0.5        # of the incremental weights, as a share of the particles
-    max_temperatures: int = 40
+    max_temperatures: int = 100    # a run that needs more jumps to lambda = 1 (statistics: 'forced')
     draws: int = 400               # posterior draws returned (resampled from the mixture)
     seed: int = 0
 
     def __post_init__(self):
         from ..errors import ConfigError, check_counts
 
-        check_counts(self, {"particles": 4, "mcmc_steps": 1, "max_temperatures": 1, "draws": 4, "seed": 0}, "smc ")
+        check_counts(self, {"particles": 4, "oversample": 1, "mcmc_steps": 1, "final_steps": 0, "max_temperatures": 1, "draws": 4, "seed": 0}, "smc ")
         if not 0.0 < self.target_ess < 1.0:
             raise ConfigError(f"smc target-ess must lie in (0, 1); got {self.target_ess}")
 
@@ -122,10 +124,12 @@ def next_increment(loglikelihood: np.ndarray, remaining: float, target_ess: floa
     return max(low, 1e-6)
 
 
-def systematic_resample(rng: np.random.Generator, log_weights: np.ndarray) -> np.ndarray:
+def systematic_resample(rng: np.random.Generator, log_weights: np.ndarray, count: int | None = None) -> np.ndarray:
+    """``count`` (default: as many as weights) indices drawn in proportion to the weights, systematically."""
+    count = len(log_weights) if count is None else count
     w = np.exp(log_weights - log_weights.max())
     cumulative = np.cumsum(w / w.sum())
-    positions = (rng.uniform() + np.arange(len(w))) / len(w)
+    positions = (rng.uniform() + np.arange(count)) / count
     return np.minimum(np.searchsorted(cumulative, positions), len(w) - 1)
 
 
@@ -201,16 +205,27 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
     for name in ("kappa", "colour", "ambient", "diffuse", "specular"):
         mask[SLICES[name]] = 0.0          # fixed by the hypothesis, or the material update's business
     score, sweep = _kernels(core, tuple(mask.tolist()))
-    z = initial_particles(core.prior, rng, config.particles)
-    loglik, logprior = (np.array(a) for a in score(jnp.asarray(z), observation))
-    hypotheses = len(HYPOTHESES)
+    hypotheses, n = len(HYPOTHESES), config.particles
+    # the first reweighting starts from oversample x N prior draws and keeps N: a valid SMC step
+    # (its evidence increment averages over all draws) that finds the object with few particles
+    draws = initial_particles(core.prior, rng, n * config.oversample)
+    all_loglik, all_logprior = (np.asarray(a) for a in score(jnp.asarray(draws), observation))
+    z = np.empty((hypotheses, n) + draws.shape[2:], np.float32)
+    loglik, logprior = np.empty((hypotheses, n), np.float32), np.empty((hypotheses, n), np.float32)
     tempering, log_evidence = np.zeros(hypotheses), np.zeros(hypotheses)
+    for h in range(hypotheses):
+        ll = np.where(np.isfinite(all_loglik[h]), all_loglik[h], -1e30)
+        step = next_increment(ll, 1.0, config.target_ess / config.oversample)
+        log_evidence[h] = np.logaddexp.reduce(step * ll) - np.log(len(ll))
+        tempering[h] = step
+        index = systematic_resample(rng, step * ll, n)
+        z[h], loglik[h], logprior[h] = draws[h][index], all_loglik[h][index], all_logprior[h][index]
     scale = np.full(hypotheses, 1.0)
     acceptance_history, steps = [], 0
-    while np.any(tempering < 1.0) and steps < config.max_temperatures:
+    while steps < config.max_temperatures:
         steps += 1
         for h in range(hypotheses):
-            if tempering[h] >= 1.0:
+            if tempering[h] >= 1.0 or steps == 1:   # the first step's reweighting is done above
                 continue
             ll = np.where(np.isfinite(loglik[h]), loglik[h], -1e30)
             step = next_increment(ll, 1.0 - tempering[h], config.target_ess)
@@ -229,7 +244,7 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
             tril[h][np.ix_(moved, moved)] = np.linalg.cholesky(cov) * 2.38 / np.sqrt(moved.sum()) * scale[h]
         state = SMCState(jnp.asarray(z), jnp.asarray(loglik), jnp.asarray(logprior))
         rates = []
-        for _ in range(config.mcmc_steps):
+        for _ in range(config.mcmc_steps + (config.final_steps if np.all(tempering >= 1.0) else 0)):
             key, sub = jax.random.split(key)
             state, accepted = sweep(sub, state, jnp.asarray(tempering, jnp.float32), jnp.asarray(tril), observation)
             rates.append(np.asarray(accepted))
@@ -239,6 +254,8 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
         acceptance_history.append(rate.tolist())
         if progress:
             progress("smc", int(100 * tempering.min()), 100)
+        if np.all(tempering >= 1.0):
+            break
     log_prior_h, _, _ = hypothesis_priors(core.prior)
     log_posterior = log_prior_h + log_evidence
     weights = np.exp(log_posterior - np.logaddexp.reduce(log_posterior))
@@ -251,7 +268,8 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
     logdensity = (logprior + loglik)[chosen_h, chosen_n].reshape(chains, per_chain)
     statistics = {"hypotheses": {name: {"log_evidence": float(log_evidence[h]), "weight": float(weights[h])}
                                  for h, name in enumerate(HYPOTHESES)},
-                  "temperatures": steps, "walk_acceptance": float(np.mean(acceptance_history[-1])),
+                  "temperatures": steps, "forced": bool(steps == config.max_temperatures),
+                  "walk_acceptance": float(np.mean(acceptance_history[-1])),
                   "seconds": time.perf_counter() - start}
     return SamplerRun(positions.astype(np.float32), logdensity.astype(np.float32),
                       np.ones((chains, per_chain), bool), {}, [{"acceptance": a} for a in acceptance_history],
