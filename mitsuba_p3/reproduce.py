@@ -12,8 +12,8 @@ fits and per-image posteriors already on disk are reused. Writes, in ``out``:
 - ``runs/V``: one evaluation run folder per benchmark, with its own tables and figures;
 - ``timing.json``: the minutes of every benchmark of every invocation.
 
-The default likelihood is each model's fitted noise model; runs with the paper's
-likelihood go to ``runs/V-paper``, with another sigma to ``runs/V-sigmaS``, and get their
+The default likelihood is the paper's; runs with each model's fitted noise model
+go to ``runs/V-fitted``, with another sigma to ``runs/V-sigmaS``, and get their
 own rows; another distance scores the same posteriors and its tables go to
 ``runs/V/distance-TERMS`` (rows such as "NP3 (colour+class)"). Baselines
 evaluated into ``runs/V`` (``mitsuba-p3 baseline evaluate TRAINED data/V --out
@@ -99,8 +99,8 @@ def reproduce(data: str | Path, out: str | Path, config: ReproduceConfig | None 
         folder, model = prepare(data, variant, progress)
         prepared = (time.perf_counter() - start) / 60
         start = time.perf_counter()
-        evaluate(folder, model, out / "runs" / run_name(variant, "paper" if evaluation.noise == "paper" and evaluation.sigma is None
-                                                     else evaluation.sigma), evaluation,
+        noise = "fitted" if evaluation.noise == "fitted" and evaluation.sigma is None else evaluation.sigma
+        evaluate(folder, model, out / "runs" / run_name(variant, noise), evaluation,
                  progress=(lambda phase, d, t: progress(f"{variant}: {phase}", d, t)) if progress else None)
         minutes[variant] = (time.perf_counter() - start) / 60
         # the tables cover every benchmark and sigma evaluated so far, this run's included
@@ -121,17 +121,17 @@ def cells(result: dict) -> str:
 
 
 def run_name(variant: str, sigma: float | str | None) -> str:
-    """The run folder of a benchmark: ``V`` with the fitted noise model (``sigma`` None), ``V-paper`` with
-    the paper's likelihood (``"paper"``), ``V-sigmaS`` with the paper's form at sigma S (a number)."""
+    """The run folder of a benchmark: ``V`` with the paper's likelihood (``sigma`` None), ``V-fitted`` with
+    the model's fitted noise model (``"fitted"``), ``V-sigmaS`` with the paper's form at sigma S (a number)."""
     if sigma is None:
         return variant
-    return f"{variant}-paper" if sigma == "paper" else f"{variant}-sigma{sigma:g}"
+    return f"{variant}-fitted" if sigma == "fitted" else f"{variant}-sigma{sigma:g}"
 
 
 def parse_run_name(name: str) -> tuple[str, float | str | None] | None:
     """(benchmark, sigma) of a run folder name (see :func:`run_name`), or None for a folder it did not make."""
-    if name.endswith("-paper") and name[:-6] in COLUMNS:
-        return name[:-6], "paper"
+    if name.endswith("-fitted") and name[:-7] in COLUMNS:
+        return name[:-7], "fitted"
     variant, _, rest = name.partition("-sigma")
     if variant not in COLUMNS:
         return None
@@ -142,14 +142,14 @@ def parse_run_name(name: str) -> tuple[str, float | str | None] | None:
 
 
 def label(likelihood: str, sigma: float | str | None, distance: str | None = None) -> str:
-    """A table row's name: ``P3``, ``P3 (paper noise)``, ``P3 (sigma 0.3)``, ``NP3 (colour+class)``, ..."""
-    noise = [] if sigma is None else ["paper noise"] if sigma == "paper" else [f"sigma {sigma:g}"]
+    """A table row's name: ``P3``, ``P3 (fitted noise)``, ``P3 (sigma 0.3)``, ``NP3 (colour+class)``, ..."""
+    noise = [] if sigma is None else ["fitted noise"] if sigma == "fitted" else [f"sigma {sigma:g}"]
     notes = noise + ([] if distance is None else [distance])
     return likelihood.upper() + (f" ({', '.join(notes)})" if notes else "")
 
 
 def _noise_order(sigma) -> tuple:
-    return (0, 0.0) if sigma is None else (1, 0.0) if sigma == "paper" else (2, float(sigma))
+    return (0, 0.0) if sigma is None else (1, 0.0) if sigma == "fitted" else (2, float(sigma))
 
 
 def collect(out: Path) -> dict:
@@ -185,8 +185,8 @@ def write_paper_tables(out: Path, results: dict) -> None:
     for model, numbers in PAPER_ACCURACY.items():
         rows.append([model, "paper"] + [numbers[c] for c in COLUMNS])
     note = ("\nCells: 5-way 1-shot / 5-way 5-shot / 10-way 1-shot / 10-way 5-shot accuracy (%). "
-            "OOD has 10 test classes. Rows without a note use the noise model fitted to each benchmark's "
-            "train residuals; 'paper noise' rows use the paper's likelihood (sigma 1, no outliers, no shadows); rows without distance terms use the paper's distance (all seven terms). Sigma and "
+            "OOD has 10 test classes. Rows without a note use the paper's likelihood (sigma 1, no outliers, no "
+            "shadows); 'fitted noise' rows the noise model fitted to each benchmark's train residuals; rows without distance terms use the paper's distance (all seven terms). Sigma and "
             "distance terms were chosen on train classes (scripts/select_sigma.py, scripts/select_distance.py). "
             "The paper's numbers are on its own data sets: compare in spirit.\n")
     atomic_write(out / "accuracy.md", markdown_table(header, rows) + note)
@@ -202,7 +202,7 @@ def write_paper_tables(out: Path, results: dict) -> None:
                 for i, (n, k) in enumerate(SETTINGS):
                     a = get(c, m, s, d)["accuracy"].get(setting_name(n, k))
                     if a:
-                        writer.writerow([c, m, "fitted" if s is None else s, d or "paper", setting_name(n, k),
+                        writer.writerow([c, m, "paper" if s is None else s, d or "paper", setting_name(n, k),
                                          a["mean"], a["half_width"], a["ece"], float(paper[i]) / 100])
     # ADI depends on the posteriors only, not on the distance: one column per (model, sigma)
     pose_models = [(m, s) for m, s, d in models if d is None]
@@ -218,5 +218,5 @@ def write_paper_tables(out: Path, results: dict) -> None:
             for m, s in pose_models:
                 if get(c, m, s, None):
                     a = get(c, m, s, None)["adi"]
-                    writer.writerow([c, m, "fitted" if s is None else s, a["mean"], a["median"],
+                    writer.writerow([c, m, "paper" if s is None else s, a["mean"], a["median"],
                                      PAPER_ADI[c][("p3", "np3").index(m)]])

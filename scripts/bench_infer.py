@@ -14,7 +14,7 @@ run resumes), then prints JSON, the settings side by side:
 
 Settings: ``mh-paper`` is the MH evaluation preset with the paper's likelihood (sigma 1, no
 shadows), the project's old default; ``mh-fitted`` the same sampler with the fitted noise model
-(the default); ``smc-fitted`` tempered SMC over the hypotheses with the fitted noise model. Needs a benchmark folder and a model fitted to it:
+(opt-in); ``smc-fitted`` tempered SMC over the hypotheses with the fitted noise model. Needs a benchmark folder and a model fitted to it:
 
     mitsuba-p3 benchmark generate fsclvr --out data/fsclvr
     mitsuba-p3 fit data/fsclvr --out data/models/fsclvr

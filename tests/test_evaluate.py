@@ -30,8 +30,10 @@ def bench(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("evaluate")
     generate("fsclvr", root / "data", seed=5, size="small", resolution=RES, spp=8)
+    # no material refinement at this tiny size (see tests/test_infer.py's fixture)
     fit_model(root / "data", root / "model", scene_config=SceneOptConfig(resolution=RES, pattern_size=16, epochs=1,
-                                                                         material_passes=1, global_passes=2))
+                                                                         material_passes=1, global_passes=2,
+                                                                         refine_materials=False))
     return root
 
 

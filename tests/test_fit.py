@@ -297,16 +297,16 @@ def test_robust_likelihood_bounds_what_an_outlier_costs():
             assert gap[0] > 1000
 
 
-def test_fitted_noise_is_the_default_likelihood(tiny_model):
+def test_fitted_noise_and_the_paper_likelihood(tiny_model):
     from mitsuba_p3.infer.posterior import default_likelihood
 
     noise = json.loads((tiny_model.root / "noise.json").read_text())
     assert 0 < noise["model"]["sigma"] < 0.3 and 0 < noise["model"]["outlier"] < 0.5
     assert 0 < noise["model"]["power"] <= 1 and noise["figures"]["correlation_area_pixels"] >= 1
-    fitted = default_likelihood(tiny_model, "p3")
+    fitted = default_likelihood(tiny_model, "p3", noise="fitted")
     assert (fitted.sigma, fitted.outlier, fitted.power, fitted.shadows) == (
         noise["model"]["sigma"], noise["model"]["outlier"], noise["model"]["power"], True)
-    paper = default_likelihood(tiny_model, "p3", noise="paper")
+    paper = default_likelihood(tiny_model, "p3")                    # the default
     assert (paper.sigma, paper.outlier, paper.power, paper.shadows) == (1.0, 0.0, 1.0, False)
     assert default_likelihood(tiny_model, "p3", sigma=0.35).sigma == 0.35
     with pytest.raises(MitsubaP3Error, match="noise model"):

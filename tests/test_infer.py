@@ -32,8 +32,11 @@ def fitted(tmp_path_factory):
     data = tmp_path_factory.mktemp("infer") / "data"
     generate("fsclvr", data, seed=3, size="small", resolution=RES, spp=8)
     return fit_model(data, tmp_path_factory.mktemp("infer") / "model",
+                     # no material refinement: at 30x40 an object is a few pixels, too few to refit
+                     # materials exactly (it overfits, and the priors collapse); these tests are
+                     # about inference, the refinement's own test is in test_fit.py
                      scene_config=SceneOptConfig(resolution=RES, pattern_size=16, epochs=1, material_passes=1,
-                                                 global_passes=2))
+                                                 global_passes=2, refine_materials=False))
 
 
 @pytest.fixture(scope="module")

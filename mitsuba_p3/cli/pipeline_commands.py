@@ -75,8 +75,8 @@ def infer(
                                            "(tempered SMC over the shape x material hypotheses)."),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
     likelihood: str = typer.Option("np3", help="p3 (colour) or np3 (colour + neural)."),
-    noise: str = typer.Option("fitted", help="Noise model: fitted (the model's, from its train residuals) or paper "
-                                             "(sigma 1, no outliers, no shadows)."),
+    noise: str = typer.Option("paper", help="Noise model: paper (sigma 1, no outliers, no shadows) or fitted (the "
+                                            "model's, from its train residuals; sharper, needs --sampler smc)."),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
                                                      "dark set)."),
     renderer: str = typer.Option("mitsuba", help="mitsuba (pure_callback) or jax (native tracer)."),
@@ -121,8 +121,8 @@ def evaluate(
     sampler: str = typer.Option("mh", help="mh (multi-chain Metropolis-Hastings; the chain options apply) or smc "
                                            "(tempered SMC over the shape x material hypotheses)."),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
-    noise: str = typer.Option("fitted", help="Noise model: fitted (the model's, from its train residuals) or paper "
-                                             "(sigma 1, no outliers, no shadows)."),
+    noise: str = typer.Option("paper", help="Noise model: paper (sigma 1, no outliers, no shadows) or fitted (the "
+                                            "model's, from its train residuals; sharper, needs --sampler smc)."),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
                                                      "dark set)."),
     distance: str = typer.Option("all", help="Distance terms: 'all' (the paper's) or some joined by '+', e.g. "
@@ -169,8 +169,8 @@ def reproduce(
     burn_in: int = sampler_option("burn_in", PRESET),
     tune_rounds: int = sampler_option("tune_rounds", PRESET),
     tune_steps: int = sampler_option("tune_steps", PRESET),
-    noise: str = typer.Option("fitted", help="Noise model: fitted (the model's, from its train residuals) or paper "
-                                             "(sigma 1, no outliers, no shadows)."),
+    noise: str = typer.Option("paper", help="Noise model: paper (sigma 1, no outliers, no shadows) or fitted (the "
+                                            "model's, from its train residuals; sharper, needs --sampler smc)."),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma; runs go to "
                                                      "runs/V-sigmaS."),
     distance: str = typer.Option("all", help="Distance terms: 'all' or e.g. colour+class (tables in "

@@ -18,7 +18,7 @@ PRESET = SamplerConfig(chains=8, steps=200, burn_in=30, tune_rounds=3, tune_step
 class EvaluationConfig:
     likelihoods: tuple = ("p3", "np3")
     sigma: float | None = None   # colour-likelihood sigma in the paper's form; None: as ``noise`` says
-    noise: str = "fitted"        # fitted: the model's noise model; paper: sigma 1, no outliers, no shadows
+    noise: str = "paper"         # paper: sigma 1, no outliers, no shadows; fitted: the model's noise model
     renderer: str = "mitsuba"
     sampler: SamplerConfig = field(default_factory=SamplerConfig)
     episodes: int = 100          # per N-way K-shot setting

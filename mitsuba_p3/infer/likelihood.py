@@ -7,10 +7,10 @@ raised to the power beta:
 
     log p = beta * sum over pixels of log[(1 - eps) prod_c TN(r_c; 0, sigma, [-1, 1]) + eps / 8]
 
-The default numbers are the ones the fit measured on the train split's residuals
-(:func:`mitsuba_p3.infer.posterior.default_likelihood`). With eps = 0 and beta = 1
-it is the paper's likelihood, sigma = 1.0 (0.35 on its dark set), a sum of
-truncated normals over every pixel and channel (``--noise paper``).
+With eps = 0 and beta = 1 it is the paper's likelihood, sigma = 1.0 (0.35 on its
+dark set), a sum of truncated normals over every pixel and channel: the default
+(``--noise paper``). ``--noise fitted`` uses the numbers the fit measured on the
+train split's residuals (:func:`mitsuba_p3.infer.posterior.default_likelihood`).
 
 Neural: -weight * sum over the selected VGG16 channels m of the pixel-mean of
 (F_m(I) - F_m(render))^2, weight 0.05. Both are ``jax.numpy`` functions of a
