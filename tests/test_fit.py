@@ -269,7 +269,15 @@ def test_noise_em_recovers_scale_and_outlier_weight():
     outliers = rng.uniform(size=(20, 60, 80)) < 0.05
     residuals[outliers] = rng.uniform(-1, 1, (outliers.sum(), 3))
     sigma, outlier, _ = fit_mixture(residuals)
-    assert sigma == pytest.approx(0.03, rel=0.02) and outlier == pytest.approx(0.05, rel=0.05)
+    assert sigma == pytest.approx(0.03, rel=0.02) and outlier[0] == pytest.approx(0.05, rel=0.05)
+    # two regions with their own outlier weights (object pixels: 30% outliers; floor: 5%)
+    regions = np.zeros((20, 60, 80), int)
+    regions[:, 20:40, 30:50] = 1
+    inside = (regions == 1) & (rng.uniform(size=regions.shape) < 0.3 / 0.95)
+    residuals[inside] = rng.uniform(-1, 1, (inside.sum(), 3))
+    sigma, outlier, _ = fit_mixture(residuals, regions)
+    assert sigma == pytest.approx(0.03, rel=0.03)
+    assert outlier[0] == pytest.approx(0.05, rel=0.06) and outlier[1] == pytest.approx(0.05 + 0.95 * 0.3 / 0.95, rel=0.1)
 
 
 def test_correlation_area_of_white_and_smoothed_noise():
@@ -304,8 +312,10 @@ def test_fitted_noise_and_the_paper_likelihood(tiny_model):
     assert 0 < noise["model"]["sigma"] < 0.3 and 0 < noise["model"]["outlier"] < 0.5
     assert 0 < noise["model"]["power"] <= 1 and noise["figures"]["correlation_area_pixels"] >= 1
     fitted = default_likelihood(tiny_model, "p3", noise="fitted")
-    assert (fitted.sigma, fitted.outlier, fitted.power, fitted.shadows) == (
-        noise["model"]["sigma"], noise["model"]["outlier"], noise["model"]["power"], True)
+    assert (fitted.sigma, fitted.outlier, fitted.object_outlier, fitted.power, fitted.shadows) == (
+        noise["model"]["sigma"], noise["model"]["outlier"], noise["model"]["object_outlier"], noise["model"]["power"],
+        True)
+    assert 0 < noise["model"]["object_outlier"] < 1 and noise["figures"]["object_pixels"] > 0
     paper = default_likelihood(tiny_model, "p3")                    # the default
     assert (paper.sigma, paper.outlier, paper.power, paper.shadows) == (1.0, 0.0, 1.0, False)
     assert default_likelihood(tiny_model, "p3", sigma=0.35).sigma == 0.35

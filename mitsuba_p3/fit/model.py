@@ -147,6 +147,14 @@ def render_train_split(model: FittedModel, dataset: Dataset, shadows: bool | Non
     return observations, renders
 
 
+def empty_render(model: FittedModel, height: int, width: int, shadows: bool) -> np.ndarray:
+    """The fitted world with no object (a sub-pixel one): the floor as the model predicts it."""
+    from ..render import make_renderer
+
+    renderer = make_renderer(model.scene(), "mitsuba", height=height, width=width, shadows=shadows)
+    return renderer.render({"scale": np.full(3, 1e-5, np.float32)})
+
+
 def fit_model(dataset_dir: str | Path, out: str | Path, stages: Sequence[str] = STAGES,
               scene_config: SceneOptConfig | None = None, channels: int = 3,
               prior_config: PriorConfig | None = None,
@@ -201,7 +209,8 @@ def fit_model(dataset_dir: str | Path, out: str | Path, stages: Sequence[str] = 
         if progress:
             progress("noise", 0, 1, 0.0)
         observations, renders = render_train_split(model, dataset, shadows=True)
-        noise, figures = fit_noise(observations, renders, shadows=True)
+        noise, figures = fit_noise(observations, renders, empty_render(model, *dataset.resolution, shadows=True),
+                                   shadows=True)
         atomic_json(root / "noise.json", {"model": noise.as_dict(), "figures": figures})
         _record(root, dataset, "noise", {"model": noise.as_dict(), **figures,
                                          "seconds": round(time.perf_counter() - start, 1)})

@@ -12,6 +12,15 @@ almost everywhere and large in a few places. So each pixel is
 
 and log p(r) = logaddexp(log(1 - eps) + sum_c log TN(r_c; 0, sigma), log eps - 3 log 2)
 per pixel, summed over pixels (the per-pixel robust likelihood of Bayes3D / 3DP3).
+
+**Where outliers are.** The outlier weight depends on what the render predicts at
+the pixel: eps_object where the object (or its shadow) changes the render from
+the empty floor, eps_floor elsewhere. At the true geometry a metal's reflections
+are outliers the Phong model cannot explain, while the floor around an object
+is nearly always explained. A single eps let the posterior call part of a metal
+sphere "outliers" and explain the rest with a smaller sphere; with two, a pixel
+the hypothesis leaves as floor but the image shows as object costs the price
+of a floor outlier, which is high.
 sigma and eps are fitted by EM (Dempster et al. 1977): the E-step gives each
 pixel's inlier responsibility w, the M-step sets eps to the mean of 1 - w and
 sigma^2 to the w-weighted mean squared channel residual (the exact M-step of an
@@ -41,7 +50,8 @@ class NoiseModel:
     """A fitted pixel noise model (see the module docstring)."""
 
     sigma: float          # inlier scale per channel
-    outlier: float        # eps, the outlier probability per pixel
+    outlier: float        # eps_floor, the outlier probability of a pixel the render leaves as empty floor
+    object_outlier: float | None = None   # eps_object, where the render differs from the empty floor
     power: float = 1.0    # beta, the likelihood power (1 / correlation area)
     shadows: bool = True  # the residuals came from renders with hard shadows (inference must match)
 
@@ -57,27 +67,39 @@ def truncation_log_mass(sigma: float) -> float:
         np.log1p(-2.0 * np.exp(log_ndtr(-1.0 / sigma))))
 
 
-def pixel_log_likelihood(residual, sigma: float, outlier: float, xp=np):
-    """Per-pixel log p(r) of residuals (..., 3) under the inlier/outlier mixture (numpy or jax.numpy)."""
+def pixel_log_likelihood(residual, sigma: float, outlier, xp=np):
+    """Per-pixel log p(r) of residuals (..., 3) under the inlier/outlier mixture (numpy or jax.numpy);
+    ``outlier`` is a number or an array of per-pixel weights (...,)."""
     inlier = (-0.5 * xp.sum(residual * residual, axis=-1) / sigma ** 2
               - 3.0 * (np.log(sigma) + 0.5 * np.log(2 * np.pi) + truncation_log_mass(sigma)))
-    if outlier <= 0.0:
+    if np.ndim(outlier) == 0 and outlier <= 0.0:
         return inlier
-    return xp.logaddexp(np.log1p(-outlier) + inlier, np.log(outlier) + OUTLIER_LOG_DENSITY)
+    return xp.logaddexp(xp.log1p(-outlier) + inlier, xp.log(outlier) + OUTLIER_LOG_DENSITY)
 
 
-def fit_mixture(residuals: np.ndarray, iterations: int = 200, tolerance: float = 1e-7,
-                sigma: float = 0.05, outlier: float = 0.05) -> tuple[float, float, int]:
-    """EM for (sigma, eps) on residuals (N, ..., 3); returns (sigma, eps, iterations run)."""
+def object_pixels(renders, empty, xp=np):
+    """Pixels (..., H, W) where a render differs from the empty-floor render: the object and its shadow."""
+    return xp.any(xp.abs(renders - empty) > 1e-3, axis=-1)
+
+
+def fit_mixture(residuals: np.ndarray, regions: np.ndarray | None = None, iterations: int = 200,
+                tolerance: float = 1e-7, sigma: float = 0.05) -> tuple[float, np.ndarray, int]:
+    """EM for sigma and one eps per region on residuals (N, ..., 3); ``regions`` (N, ...) holds each
+    pixel's region index (default: one region). Returns (sigma, eps per region, iterations run)."""
     r = np.asarray(residuals, np.float64).reshape(-1, 3)
+    region = np.zeros(len(r), int) if regions is None else np.asarray(regions, int).reshape(-1)
+    count = region.max() + 1
+    outlier = np.full(count, 0.05)
     squared = np.sum(r * r, axis=1)
     for step in range(1, iterations + 1):
-        inlier = np.log1p(-outlier) + pixel_log_likelihood(r, sigma, 0.0)
-        outlying = np.log(outlier) + OUTLIER_LOG_DENSITY
+        eps = outlier[region]
+        inlier = np.log1p(-eps) + pixel_log_likelihood(r, sigma, 0.0)
+        outlying = np.log(eps) + OUTLIER_LOG_DENSITY
         w = np.exp(inlier - np.logaddexp(inlier, outlying))               # inlier responsibilities
-        new_outlier = float(np.clip(1.0 - w.mean(), 1e-6, 0.5))
+        new_outlier = np.clip(1.0 - np.bincount(region, w, count) / np.maximum(np.bincount(region, None, count), 1),
+                              1e-6, 0.9)
         new_sigma = float(np.sqrt(np.sum(w * squared) / (3.0 * max(np.sum(w), 1e-12))))
-        converged = abs(new_sigma - sigma) < tolerance and abs(new_outlier - outlier) < tolerance
+        converged = abs(new_sigma - sigma) < tolerance and np.all(np.abs(new_outlier - outlier) < tolerance)
         sigma, outlier = new_sigma, new_outlier
         if converged:
             break
@@ -105,14 +127,18 @@ def correlation_area(residuals: np.ndarray, max_lag: int = 12) -> float:
     return float(max(1.0, np.sum(window)))
 
 
-def fit_noise(observations: np.ndarray, renders: np.ndarray, shadows: bool) -> tuple[NoiseModel, dict]:
-    """The noise model of (observed, rendered) image pairs (N, H, W, 3), and figures about the fit;
-    ``shadows`` says whether the renders had hard shadows."""
+def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, shadows: bool
+              ) -> tuple[NoiseModel, dict]:
+    """The noise model of (observed, rendered) image pairs (N, H, W, 3), given the empty-floor render
+    (H, W, 3), and figures about the fit; ``shadows`` says whether the renders had hard shadows."""
     residuals = np.asarray(observations, np.float64) - np.asarray(renders, np.float64)
-    sigma, outlier, iterations = fit_mixture(residuals)
+    regions = object_pixels(np.asarray(renders), np.asarray(empty)).astype(int)     # 1: object or its shadow
+    sigma, outlier, iterations = fit_mixture(residuals, regions)
     area = correlation_area(residuals)
-    model = NoiseModel(sigma=sigma, outlier=outlier, power=1.0 / area, shadows=shadows)
-    figures = {"pixels": int(np.prod(residuals.shape[:-1])), "residual_rms": float(np.sqrt(np.mean(residuals ** 2))),
+    model = NoiseModel(sigma=sigma, outlier=float(outlier[0]), object_outlier=float(outlier[-1]),
+                       power=1.0 / area, shadows=shadows)
+    figures = {"pixels": int(np.prod(residuals.shape[:-1])), "object_pixels": int(regions.sum()),
+               "residual_rms": float(np.sqrt(np.mean(residuals ** 2))),
                "em_iterations": iterations, "correlation_area_pixels": area,
                "effective_sigma": sigma / np.sqrt(model.power)}
     return model, figures

@@ -35,6 +35,7 @@ class LikelihoodConfig:
     kind: str = "np3"             # p3: colour only; np3: colour + neural
     sigma: float = 1.0            # inlier scale per channel (the paper: 1.0; 0.35 on its dark set)
     outlier: float = 0.0          # eps, the outlier probability per pixel (the paper: 0)
+    object_outlier: float | None = None   # eps where the render differs from the empty floor (None: eps)
     power: float = 1.0            # beta, the power of the colour likelihood (the paper: 1)
     shadows: bool = False         # hard shadows in the likelihood's renders (the paper: off)
     neural_weight: float = 0.05
@@ -48,24 +49,33 @@ class LikelihoodConfig:
             raise ConfigError(f"the colour likelihood's sigma must be a positive number; got {self.sigma}")
         if not (0.0 <= self.outlier < 1.0):
             raise ConfigError(f"the outlier probability must lie in [0, 1); got {self.outlier}")
+        if self.object_outlier is not None and not (0.0 < self.object_outlier < 1.0 and self.outlier > 0.0):
+            raise ConfigError(f"an object outlier probability needs both in (0, 1); got {self.object_outlier}, "
+                              f"{self.outlier}")
         if not (np.isfinite(self.power) and 0.0 < self.power <= 1.0):
             raise ConfigError(f"the likelihood power must lie in (0, 1]; got {self.power}")
         if not (np.isfinite(self.neural_weight) and self.neural_weight >= 0):
             raise ConfigError(f"the neural weight must be >= 0; got {self.neural_weight}")
 
 
-def colour_log_likelihood(observed, renders, config: LikelihoodConfig):
-    """The colour log likelihood of the module docstring for a batch of renders (B, H, W, 3) -> (B,)."""
+def colour_log_likelihood(observed, renders, config: LikelihoodConfig, empty=None):
+    """The colour log likelihood of the module docstring for a batch of renders (B, H, W, 3) -> (B,);
+    with ``config.object_outlier``, pixels where a render differs from ``empty`` (the empty-floor
+    render) have that outlier weight."""
     import jax.numpy as jnp
 
-    from ..fit.noise import pixel_log_likelihood
+    from ..fit.noise import object_pixels, pixel_log_likelihood
 
     residual = jnp.asarray(observed)[None] - renders
-    per_pixel = pixel_log_likelihood(residual, config.sigma, config.outlier, xp=jnp)
+    outlier = config.outlier
+    if config.object_outlier is not None:
+        outlier = jnp.where(object_pixels(renders, jnp.asarray(empty), xp=jnp), config.object_outlier, config.outlier)
+    per_pixel = pixel_log_likelihood(residual, config.sigma, outlier, xp=jnp)
     return config.power * jnp.sum(per_pixel, axis=(-2, -1))
 
 
-def observe(observed: np.ndarray, config: LikelihoodConfig, channels: list[Channel] | None = None) -> dict:
+def observe(observed: np.ndarray, config: LikelihoodConfig, channels: list[Channel] | None = None,
+            empty: np.ndarray | None = None) -> dict:
     """What the likelihood needs of an observed image (H, W, 3): the image, and for NP3 its
     selected VGG16 features. A pytree, so a compiled sampler takes it as an argument and
     serves every image of the same size without recompiling."""
@@ -74,6 +84,12 @@ def observe(observed: np.ndarray, config: LikelihoodConfig, channels: list[Chann
 
         raise MitsubaP3Error("the np3 likelihood needs the fitted model's selected VGG16 channels")
     observation = {"image": np.asarray(observed, np.float32)}
+    if config.object_outlier is not None:
+        if empty is None:
+            from ..errors import MitsubaP3Error
+
+            raise MitsubaP3Error("a likelihood with an object outlier weight needs the empty-floor render")
+        observation["empty"] = np.asarray(empty, np.float32)
     if config.kind == "np3":
         observation["features"] = [np.asarray(f) for f in selected_features(observation["image"][None], channels)]
     return observation
@@ -81,7 +97,7 @@ def observe(observed: np.ndarray, config: LikelihoodConfig, channels: list[Chann
 
 def score(observation: dict, renders, config: LikelihoodConfig, channels: list[Channel] | None = None):
     """(B, H, W, 3) renders -> (B,) log-likelihoods of ``observation`` (JAX)."""
-    log_lik = colour_log_likelihood(observation["image"], renders, config)
+    log_lik = colour_log_likelihood(observation["image"], renders, config, observation.get("empty"))
     if config.kind == "np3":
         features = selected_features(renders, channels)
         log_lik = log_lik - config.neural_weight * neural_distance(observation["features"], features)

@@ -136,7 +136,9 @@ class PosteriorCore:
         return cls._cache[key]
 
     def observe(self, observed: np.ndarray) -> dict:
-        return observe(observed, self.config, self.channels)
+        if self.config.object_outlier is not None and not hasattr(self, "_empty"):
+            self._empty = self.renderer.render({"scale": np.full(3, 1e-5, np.float32)})   # the floor, no object
+        return observe(observed, self.config, self.channels, getattr(self, "_empty", None))
 
     def render(self, z):
         """Image(s) of unconstrained position(s) z (JAX)."""

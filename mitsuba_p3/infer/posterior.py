@@ -154,5 +154,5 @@ def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | No
     if sigma is not None or noise == "paper":
         return LikelihoodConfig(kind=kind, sigma=1.0 if sigma is None else sigma)
     model = fitted.noise
-    return LikelihoodConfig(kind=kind, sigma=model.sigma, outlier=model.outlier, power=model.power,
-                            shadows=model.shadows)
+    return LikelihoodConfig(kind=kind, sigma=model.sigma, outlier=model.outlier, object_outlier=model.object_outlier,
+                            power=model.power, shadows=model.shadows)
