@@ -27,6 +27,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     os.close(handle)
     try:
         yield Path(temporary)
+        os.chmod(temporary, 0o666 & ~_umask())      # mkstemp makes 0600; give the file the usual mode
         os.replace(temporary, path)
     finally:
         if os.path.exists(temporary):
@@ -38,6 +39,12 @@ def atomic_open(path: str | Path) -> Iterator:
     """A text file (UTF-8, ``newline=""`` as the csv module wants) renamed to ``path`` when the block ends."""
     with atomic_path(path) as temporary, open(temporary, "w", newline="", encoding="utf-8") as f:
         yield f
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def atomic_write(path: str | Path, data: bytes | str) -> Path:
