@@ -36,7 +36,7 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from ..shapes import SHAPES
-from ..space import HYPOTHESES, MATERIAL_KINDS, SLICES
+from ..space import DIMENSION, HYPOTHESES, MATERIAL_KINDS, SLICES
 from .mcmc import SamplerRun
 
 # class logits (z_kappa) that put a point firmly in each shape class: softmax([z1, z2, 0])
@@ -201,7 +201,7 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
     start = time.perf_counter()
     rng = np.random.default_rng(config.seed)
     key = jax.random.PRNGKey(config.seed)
-    mask = np.ones(15, np.float32)
+    mask = np.ones(DIMENSION, np.float32)
     for name in ("kappa", "colour", "ambient", "diffuse", "specular"):
         mask[SLICES[name]] = 0.0          # fixed by the hypothesis, or the material update's business
     score, sweep = _kernels(core, tuple(mask.tolist()))
@@ -238,7 +238,7 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
             z[h], loglik[h], logprior[h] = z[h][index], loglik[h][index], logprior[h][index]
         # walk covariance per hypothesis from its particles (moved dimensions only)
         moved = mask > 0
-        tril = np.zeros((hypotheses, 15, 15), np.float32)
+        tril = np.zeros((hypotheses, DIMENSION, DIMENSION), np.float32)
         for h in range(hypotheses):
             cov = np.cov(z[h][:, moved], rowvar=False) + 1e-6 * np.eye(moved.sum())
             tril[h][np.ix_(moved, moved)] = np.linalg.cholesky(cov) * 2.38 / np.sqrt(moved.sum()) * scale[h]
