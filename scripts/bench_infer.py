@@ -45,12 +45,15 @@ CHECKED = ("shift", "scale", "colour")
 
 
 def r_hat_across_seeds(runs: list[CachedPosterior]) -> float:
-    """The largest split-free R-hat of shift, scale and colour, each seed's draws one chain."""
+    """The largest rank R-hat of shift, scale and colour, each seed's draws one chain (shift only where
+    the cache holds its draws)."""
     import arviz as az
 
     worst = 1.0
     for name in CHECKED:
-        draws = [run.program.samples[name] for run in runs]
+        if name == "shift" and any(run.shift_samples is None for run in runs):
+            continue
+        draws = [run.shift_samples if name == "shift" else run.program.samples[name] for run in runs]
         length = min(len(d) for d in draws)
         values = np.stack([d[:length] for d in draws])            # (seeds, draws, dims)
         for dim in range(values.shape[-1]):

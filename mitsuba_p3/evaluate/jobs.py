@@ -94,6 +94,7 @@ def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str,
     samples = {f"sample_{name}": posterior.draws(name).reshape(draws, -1)[keep].astype(np.float32)
                for name in CONTINUOUS}
     atomic_npz(Path(out), **samples, sample_class=posterior.draws("kappa")[keep].astype(np.int8),
+               sample_shift=posterior.draws("shift")[keep].astype(np.float32),
                   shift=np.asarray(estimate["shift"], np.float64), yaw=np.float64(estimate["theta"]),
                   kappa=np.int64(estimate["kappa"]), seconds=np.float64(seconds),
                   max_r_hat=np.float64(summary["r_hat"].max()), min_ess=np.float64(summary["ess_bulk"].min()),
@@ -123,6 +124,7 @@ class CachedPosterior:
     max_r_hat: float
     min_ess: float
     log_evidence: np.ndarray | None = None       # per hypothesis (space.HYPOTHESES), SMC only
+    shift_samples: np.ndarray | None = None      # (n, 2) posterior draws of the position (newer caches)
 
     @classmethod
     def load(cls, path: Path, max_points: int) -> "CachedPosterior":
@@ -131,7 +133,8 @@ class CachedPosterior:
             samples["class"] = f["sample_class"].astype(int)
             return cls(ProtoProgram(samples, max_points), f["shift"], float(f["yaw"]), int(f["kappa"]),
                        float(f["seconds"]), float(f["max_r_hat"]), float(f["min_ess"]),
-                       f["log_evidence"] if "log_evidence" in f.files else None)
+                       f["log_evidence"] if "log_evidence" in f.files else None,
+                       f["sample_shift"].astype(np.float64) if "sample_shift" in f.files else None)
 
 
 def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: EvaluationConfig) -> None:
