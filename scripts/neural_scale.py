@@ -54,7 +54,7 @@ def main() -> None:
     from mitsuba_p3.render import make_renderer
 
     empty = make_renderer(model.scene(), height=dataset.resolution[0], width=dataset.resolution[1],
-                          shadows=True).render({"scale": np.full(3, 1e-4, np.float32)})
+                          shadows=True).render_empty()
     channels = model.channels
     rows = {"torchvision": [], "paper_scale": [], "keras_inputs": []}
     colour = {"fitted": [], "paper_sigma_1": []}

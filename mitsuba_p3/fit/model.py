@@ -151,8 +151,7 @@ def empty_render(model: FittedModel, height: int, width: int, shadows: bool) -> 
     """The fitted world with no object (a sub-pixel one): the floor as the model predicts it."""
     from ..render import make_renderer
 
-    renderer = make_renderer(model.scene(), "mitsuba", height=height, width=width, shadows=shadows)
-    return renderer.render({"scale": np.full(3, 1e-5, np.float32)})
+    return make_renderer(model.scene(), "mitsuba", height=height, width=width, shadows=shadows).render_empty()
 
 
 def fit_model(dataset_dir: str | Path, out: str | Path, stages: Sequence[str] = STAGES,

@@ -116,6 +116,8 @@ class PosteriorCore:
         self.renderer = make_renderer(fitted.scene(), renderer, height=height, width=width,
                                       shadows=likelihood.shadows)
         self.channels = fitted.channels if likelihood.kind == "np3" else None
+        # the empty floor, once per core: the likelihood's object/floor regions need it
+        self.empty = self.renderer.render_empty() if likelihood.object_outlier is not None else None
         if renderer == "mitsuba":
             self._render = mitsuba_render_function(self.renderer)
             self._bases = mitsuba_render_function(self.renderer, bases=True)
@@ -136,9 +138,7 @@ class PosteriorCore:
         return cls._cache[key]
 
     def observe(self, observed: np.ndarray) -> dict:
-        if self.config.object_outlier is not None and not hasattr(self, "_empty"):
-            self._empty = self.renderer.render({"scale": np.full(3, 1e-5, np.float32)})   # the floor, no object
-        return observe(observed, self.config, self.channels, getattr(self, "_empty", None))
+        return observe(observed, self.config, self.channels, self.empty)
 
     def render(self, z):
         """Image(s) of unconstrained position(s) z (JAX)."""

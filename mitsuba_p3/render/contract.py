@@ -140,3 +140,8 @@ class Renderer:
                 raise SceneError(f"unknown renderer parameter(s) {sorted(unknown)}; known: {sorted(merged)}")
             merged.update(params)
         return check_params(merged)
+
+    def render_empty(self) -> np.ndarray:
+        """The world without its object (shrunk to 10 micrometres, far below a pixel): the floor as the
+        model predicts it, for the noise model's object/floor regions."""
+        return self.render({"scale": np.full(3, 1e-5, np.float32)})
