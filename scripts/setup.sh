@@ -18,7 +18,8 @@ if ! has_llvm; then
   has_llvm || { echo "setup: libllvm19 did not give a usable libLLVM; see 'mitsuba-p3 doctor'" >&2; exit 1; }
 fi
 
-if ! "$PYTHON" -c "import mitsuba_p3.cli, pytest" 2>/dev/null || [ pyproject.toml -nt .setup-done ]; then
+# -I: the import must come from the installed package (this clone), not from the working directory
+if ! "$PYTHON" -I -c "import mitsuba_p3.cli, pytest, os, sys; sys.exit(os.path.realpath(mitsuba_p3.__file__) != os.path.realpath('mitsuba_p3/__init__.py'))" 2>/dev/null || [ pyproject.toml -nt .setup-done ]; then
   echo "setup: installing the mitsuba-p3 package and its dependencies"
   "$PYTHON" -m pip install -q --disable-pip-version-check -e ".[test]"
   touch .setup-done

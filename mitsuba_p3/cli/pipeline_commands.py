@@ -14,6 +14,11 @@ from ..infer.smc import SMCConfig
 from .app import app, phase_progress_bar, progress_bar, sampler_option
 
 
+NOISE_HELP = ("Noise model: fitted (the Gaussian fitted to the model's train residuals, with hard shadows), "
+              "robust (the fitted inlier/outlier mixture) or paper (sigma 1, no shadows; the paper's rows, with "
+              "--sampler mh).")
+
+
 def choose_sampler(name: str, mh: SamplerConfig, particles: int) -> SamplerConfig | SMCConfig:
     """The sampler a command's --sampler names: the MH settings given, or SMC with their seed."""
     from ..errors import ConfigError
@@ -71,12 +76,11 @@ def infer(
     burn_in: int = sampler_option("burn_in", SamplerConfig),
     tune_rounds: int = sampler_option("tune_rounds", SamplerConfig),
     tune_steps: int = sampler_option("tune_steps", SamplerConfig),
-    sampler: str = typer.Option("mh", help="mh (multi-chain Metropolis-Hastings; the chain options apply) or smc "
-                                           "(tempered SMC over the shape x material hypotheses)."),
+    sampler: str = typer.Option("smc", help="smc (tempered SMC over the shape classes, weighed by their evidence) "
+                                            "or mh (multi-chain Metropolis-Hastings; the chain options apply)."),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
     likelihood: str = typer.Option("np3", help="p3 (colour) or np3 (colour + neural)."),
-    noise: str = typer.Option("paper", help="Noise model: paper (sigma 1, no outliers, no shadows) or fitted (the "
-                                            "model's, from its train residuals; sharper, needs --sampler smc)."),
+    noise: str = typer.Option("fitted", help=NOISE_HELP),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
                                                      "dark set)."),
     renderer: str = typer.Option("mitsuba", help="mitsuba (pure_callback) or jax (native tracer)."),
@@ -118,11 +122,10 @@ def evaluate(
     burn_in: int = sampler_option("burn_in", SamplerConfig),
     tune_rounds: int = sampler_option("tune_rounds", SamplerConfig),
     tune_steps: int = sampler_option("tune_steps", SamplerConfig),
-    sampler: str = typer.Option("mh", help="mh (multi-chain Metropolis-Hastings; the chain options apply) or smc "
-                                           "(tempered SMC over the shape x material hypotheses)."),
+    sampler: str = typer.Option("smc", help="smc (tempered SMC over the shape classes, weighed by their evidence) "
+                                            "or mh (multi-chain Metropolis-Hastings; the chain options apply)."),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
-    noise: str = typer.Option("paper", help="Noise model: paper (sigma 1, no outliers, no shadows) or fitted (the "
-                                            "model's, from its train residuals; sharper, needs --sampler smc)."),
+    noise: str = typer.Option("fitted", help=NOISE_HELP),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
                                                      "dark set)."),
     distance: str = typer.Option("all", help="Distance terms: 'all' (the paper's) or some joined by '+', e.g. "
@@ -169,8 +172,10 @@ def reproduce(
     burn_in: int = sampler_option("burn_in", PRESET),
     tune_rounds: int = sampler_option("tune_rounds", PRESET),
     tune_steps: int = sampler_option("tune_steps", PRESET),
-    noise: str = typer.Option("paper", help="Noise model: paper (sigma 1, no outliers, no shadows) or fitted (the "
-                                            "model's, from its train residuals; sharper, needs --sampler smc)."),
+    sampler_name: str = typer.Option("smc", "--sampler", help="smc (tempered SMC over the shape classes) or mh (the "
+                                                             "evaluation preset; the chain options apply)."),
+    particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
+    noise: str = typer.Option("fitted", help=NOISE_HELP),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma; runs go to "
                                                      "runs/V-sigmaS."),
     distance: str = typer.Option("all", help="Distance terms: 'all' or e.g. colour+class (tables in "
@@ -185,8 +190,8 @@ def reproduce(
     from ..reproduce import ReproduceConfig
     from ..reproduce import reproduce as run_reproduction
 
-    sampler = replace(PRESET, chains=chains, steps=steps, burn_in=burn_in, tune_rounds=tune_rounds,
-                      tune_steps=tune_steps)
+    sampler = choose_sampler(sampler_name, replace(PRESET, chains=chains, steps=steps, burn_in=burn_in,
+                                                   tune_rounds=tune_rounds, tune_steps=tune_steps), particles)
     evaluation = EvaluationConfig(likelihoods=tuple(k.strip() for k in likelihoods.split(",") if k.strip()),
                                   sigma=sigma, noise=noise, sampler=sampler, episodes=episodes, jobs=jobs,
                                   distance=DistanceConfig(properties=parse_properties(distance)))

@@ -7,6 +7,7 @@ from ..concepts import DistanceConfig
 from ..errors import ConfigError, check_counts
 from ..infer.likelihood import LIKELIHOODS, NOISES, LikelihoodConfig
 from ..infer.mcmc import SamplerConfig
+from ..infer.smc import SMCConfig
 from ..render import RENDERERS
 
 # The sampler settings of the evaluation tables (840 posteriors in about 2.5 h on 2 cores): shorter
@@ -18,9 +19,9 @@ PRESET = SamplerConfig(chains=8, steps=200, burn_in=30, tune_rounds=3, tune_step
 class EvaluationConfig:
     likelihoods: tuple = ("p3", "np3")
     sigma: float | None = None   # colour-likelihood sigma in the paper's form; None: as ``noise`` says
-    noise: str = "paper"         # paper: sigma 1, no outliers, no shadows; fitted: the model's noise model
+    noise: str = "fitted"        # fitted / robust: the model's noise model (Gaussian / mixture); paper: sigma 1
     renderer: str = "mitsuba"
-    sampler: SamplerConfig = field(default_factory=SamplerConfig)
+    sampler: SamplerConfig | SMCConfig = field(default_factory=SMCConfig)
     episodes: int = 100          # per N-way K-shot setting
     queries_per_class: int = 1
     episode_seed: int = 0

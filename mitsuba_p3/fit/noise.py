@@ -26,6 +26,22 @@ pixel's inlier responsibility w, the M-step sets eps to the mean of 1 - w and
 sigma^2 to the w-weighted mean squared channel residual (the exact M-step of an
 untruncated normal; truncation at +-1 changes it by less than 1e-6 for sigma < 0.2).
 
+**Which form infers.** Both forms are fitted; inference uses the Gaussian one
+(eps = 0, sigma the residuals' root mean square: the maximum-likelihood normal) by
+default. The mixture is the better description of the residuals at the *true*
+geometry, but it is the worse *comparison* between hypotheses: it caps the cost of
+a pixel the hypothesis gets wrong at -log(eps / 8) nats, so a smaller object that
+leaves part of a metal sphere to "outliers" beats the whole sphere in a slightly
+wrong shade, and the posterior shrinks metals. Chosen on train classes
+(``scripts/select_noise.py``: the share of train images whose most probable shape
+and size are right under each form, the same sampler otherwise).
+
+**The footprint.** Where the observed image differs from the empty-floor render by
+more than the floor's own residuals do, there is the object or its shadow. The
+threshold is the 99.9th percentile of the largest channel |residual| over the
+train split's floor pixels (where the fitted render is the empty floor); the
+sampler starts its search there (:mod:`mitsuba_p3.infer.smc`).
+
 **Correlation.** Neighbouring residuals are not independent (a misplaced edge
 or a soft shadow spans many pixels), so the summed log likelihood counts each
 piece of evidence several times and the posterior comes out over-confident. The
@@ -54,6 +70,8 @@ class NoiseModel:
     object_outlier: float | None = None   # eps_object, where the render differs from the empty floor
     power: float = 1.0    # beta, the likelihood power (1 / correlation area)
     shadows: bool = True  # the residuals came from renders with hard shadows (inference must match)
+    gaussian_sigma: float | None = None   # the residuals' RMS per channel: sigma of the Gaussian form (eps = 0)
+    footprint: float | None = None        # |observed - empty floor| above this marks the object or its shadow
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -135,10 +153,13 @@ def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, 
     regions = object_pixels(np.asarray(renders), np.asarray(empty)).astype(int)     # 1: object or its shadow
     sigma, outlier, iterations = fit_mixture(residuals, regions)
     area = correlation_area(residuals)
+    floor = np.abs(residuals).max(axis=-1)[regions == 0]
     model = NoiseModel(sigma=sigma, outlier=float(outlier[0]), object_outlier=float(outlier[-1]),
-                       power=1.0 / area, shadows=shadows)
+                       power=1.0 / area, shadows=shadows, gaussian_sigma=float(np.sqrt(np.mean(residuals ** 2))),
+                       footprint=float(np.quantile(floor, 0.999)) if floor.size else None)
     figures = {"pixels": int(np.prod(residuals.shape[:-1])), "object_pixels": int(regions.sum()),
                "residual_rms": float(np.sqrt(np.mean(residuals ** 2))),
                "em_iterations": iterations, "correlation_area_pixels": area,
-               "effective_sigma": sigma / np.sqrt(model.power)}
+               "effective_sigma": model.gaussian_sigma / np.sqrt(model.power),
+               "effective_sigma_mixture": sigma / np.sqrt(model.power)}
     return model, figures

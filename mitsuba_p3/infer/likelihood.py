@@ -10,7 +10,9 @@ raised to the power beta:
 With eps = 0 and beta = 1 it is the paper's likelihood, sigma = 1.0 (0.35 on its
 dark set), a sum of truncated normals over every pixel and channel: the default
 (``--noise paper``). ``--noise fitted`` uses the numbers the fit measured on the
-train split's residuals (:func:`mitsuba_p3.infer.posterior.default_likelihood`).
+train split's residuals: a Gaussian (eps = 0) with their RMS as sigma and the power
+beta of their correlation; ``--noise robust`` the fitted mixture
+(:func:`mitsuba_p3.infer.posterior.default_likelihood`).
 
 Neural: -weight * sum over the selected VGG16 channels m of the pixel-mean of
 (F_m(I) - F_m(render))^2, weight 0.05. Both are ``jax.numpy`` functions of a
@@ -25,7 +27,9 @@ import numpy as np
 from ..fit.features import Channel, neural_distance, selected_features
 
 LIKELIHOODS = ("p3", "np3")
-NOISES = ("fitted", "paper")   # the noise model fitted to the train residuals, or the paper's
+# fitted: the Gaussian noise fitted to the train residuals (sigma, power); robust: the fitted
+# inlier/outlier mixture; paper: sigma 1 (:mod:`mitsuba_p3.fit.noise` says why fitted is Gaussian)
+NOISES = ("fitted", "robust", "paper")
 
 
 @dataclass(frozen=True)

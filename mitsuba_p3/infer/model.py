@@ -116,8 +116,10 @@ class PosteriorCore:
         self.renderer = make_renderer(fitted.scene(), renderer, height=height, width=width,
                                       shadows=likelihood.shadows)
         self.channels = fitted.channels if likelihood.kind == "np3" else None
-        # the empty floor, once per core: the likelihood's object/floor regions need it
-        self.empty = self.renderer.render_empty() if likelihood.object_outlier is not None else None
+        # the empty floor, once per core: the likelihood's object/floor regions and the SMC's
+        # footprint (pixels that differ from it by more than the fitted threshold) need it
+        self.empty = self.renderer.render_empty()
+        self.footprint_threshold = fitted.noise.footprint if (fitted.root / "noise.json").exists() else None
         if renderer == "mitsuba":
             self._render = mitsuba_render_function(self.renderer)
             self._bases = mitsuba_render_function(self.renderer, bases=True)

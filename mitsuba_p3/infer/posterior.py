@@ -140,13 +140,14 @@ def infer_image(fitted: FittedModel, observed: np.ndarray, likelihood: Likelihoo
 
 def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | None = None,
                        noise: str = "paper") -> LikelihoodConfig:
-    """The likelihood of ``kind`` (p3 or np3): the paper's (``noise="paper"``, the default: sigma 1, no
-    outliers, power 1, no shadows) or the model's fitted noise (``noise="fitted"``: sigma, outlier weight
-    and power from the fit's ``noise`` stage, renders with hard shadows as in that fit). An explicit
-    ``sigma`` selects the paper's form with that sigma (the paper used 0.35 on its dark set).
+    """The likelihood of ``kind`` (p3 or np3) under a noise model (:data:`NOISES`):
 
-    The fitted noise model is sharper than the paper's sigma 1, and the multi-chain MH sampler does
-    not mix under it (docs/results.md): it stays opt-in until a sampler that does is the default."""
+    - ``paper``: sigma 1, no outliers, power 1, no shadows (an explicit ``sigma`` selects this form
+      with that sigma; the paper used 0.35 on its dark set);
+    - ``fitted``: the fit's ``noise`` stage, in its Gaussian form: sigma the train residuals' RMS,
+      their correlation's power beta, renders with hard shadows as in that fit;
+    - ``robust``: the same stage's inlier/outlier mixture (sigma, outlier weights, beta, shadows).
+    """
     from ..errors import ConfigError
 
     if noise not in NOISES:
@@ -154,5 +155,10 @@ def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | No
     if sigma is not None or noise == "paper":
         return LikelihoodConfig(kind=kind, sigma=1.0 if sigma is None else sigma)
     model = fitted.noise
-    return LikelihoodConfig(kind=kind, sigma=model.sigma, outlier=model.outlier, object_outlier=model.object_outlier,
-                            power=model.power, shadows=model.shadows)
+    if noise == "robust":
+        return LikelihoodConfig(kind=kind, sigma=model.sigma, outlier=model.outlier,
+                                object_outlier=model.object_outlier, power=model.power, shadows=model.shadows)
+    if model.gaussian_sigma is None:
+        raise ConfigError(f"{fitted.root}/noise.json predates the Gaussian noise form; refit it with "
+                          f"mitsuba-p3 fit DATASET --out {fitted.root} --stages noise")
+    return LikelihoodConfig(kind=kind, sigma=model.gaussian_sigma, power=model.power, shadows=model.shadows)

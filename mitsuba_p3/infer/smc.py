@@ -47,8 +47,11 @@ CLASS_LOGITS = np.array([[8.0, 0.0], [0.0, 8.0], [-8.0, -8.0]], np.float32)
 class SMCConfig:
     particles: int = 32            # per hypothesis
     oversample: int = 8            # prior draws per particle at the start (the first reweighting picks N of them)
-    mcmc_steps: int = 3            # move sweeps per temperature
+    mcmc_steps: int = 3            # random-walk sweeps per temperature
+    material_every: int = 3        # a material update after every k-th sweep (and the last)
     final_steps: int = 6           # extra sweeps at lambda = 1, to spread the resampled particles again
+    footprint: bool = True         # half of the first step's draws placed from the image's footprint
+    kinds: bool = False            # material kinds as hypotheses of their own (else within each shape)
     target_ess: float = 0.5        # of the incremental weights, as a share of the particles
     max_temperatures: int = 100    # a run that needs more jumps to lambda = 1 (statistics: 'forced')
     draws: int = 400               # posterior draws returned (resampled from the mixture)
@@ -57,7 +60,7 @@ class SMCConfig:
     def __post_init__(self):
         from ..errors import ConfigError, check_counts
 
-        check_counts(self, {"particles": 4, "oversample": 1, "mcmc_steps": 1, "final_steps": 0, "max_temperatures": 1, "draws": 4, "seed": 0}, "smc ")
+        check_counts(self, {"particles": 4, "oversample": 1, "mcmc_steps": 1, "material_every": 1, "final_steps": 0, "max_temperatures": 1, "draws": 4, "seed": 0}, "smc ")
         if not 0.0 < self.target_ess < 1.0:
             raise ConfigError(f"smc target-ess must lie in (0, 1); got {self.target_ess}")
 
@@ -69,49 +72,70 @@ class SMCState(NamedTuple):
     logprior: np.ndarray
 
 
-def hypothesis_priors(prior) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per hypothesis: log p(h), and the mean and sd of its specular component in the unconstrained z."""
+class Hypotheses(NamedTuple):
+    """The discrete hypotheses an SMC run weighs: names, shape class index, log p(h), and the specular
+    weight's prior given h in z (mean, sd of one Gaussian component; NaN: the model's whole mixture)."""
+    names: tuple
+    classes: np.ndarray
+    log_prior: np.ndarray
+    specular_mean: np.ndarray
+    specular_sd: np.ndarray
+
+
+def hypotheses_of(prior, kinds: bool) -> Hypotheses:
+    """Shape classes (``kinds`` False: the material kind is left to the material moves, and its
+    posterior is the particles' share on each side of the specular threshold), or shape x material
+    kind (True: the matte and shiny components of the specular prior, each a hypothesis)."""
+    log_class = np.log(np.asarray(prior.config.class_probabilities, np.float64))
+    if not kinds:
+        nan = np.full(len(SHAPES), np.nan)
+        return Hypotheses(tuple(SHAPES), np.arange(len(SHAPES)), log_class, nan, nan)
     g = prior.gmms["specular"]
     order = np.argsort(g.means[:, 0])                  # matte: the lower component
     components = list(order) if len(order) == len(MATERIAL_KINDS) else [order[0]] * len(MATERIAL_KINDS)
     weights = np.array([g.weights[c] if len(order) > 1 else 0.5 for c in components])
-    log_p = np.array([np.log(1 / len(SHAPES)) + np.log(weights[k]) for _ in SHAPES for k in range(len(components))])
+    log_p = np.array([log_class[s] + np.log(weights[k]) for s in range(len(SHAPES)) for k in range(len(components))])
     means = np.array([(g.means[c, 0] - g.mean[0]) / g.std[0] for _ in SHAPES for c in components])
     sds = np.array([np.sqrt(g.variances[c, 0]) / g.std[0] for _ in SHAPES for c in components])
-    return log_p, means, sds
+    classes = np.repeat(np.arange(len(SHAPES)), len(MATERIAL_KINDS))
+    return Hypotheses(HYPOTHESES, classes, log_p, means, sds)
 
 
-def initial_particles(prior, rng: np.random.Generator, particles: int) -> np.ndarray:
+def initial_particles(prior, rng: np.random.Generator, particles: int, hypotheses: Hypotheses) -> np.ndarray:
     """(H, N, 15) draws from the prior given each hypothesis."""
-    _, means, sds = hypothesis_priors(prior)
-    z = prior.sample(rng, len(HYPOTHESES) * particles).reshape(len(HYPOTHESES), particles, -1).astype(np.float32)
-    for h in range(len(HYPOTHESES)):
-        z[h, :, SLICES["kappa"]] = CLASS_LOGITS[h // len(MATERIAL_KINDS)]
-        z[h, :, SLICES["specular"].start] = means[h] + sds[h] * rng.standard_normal(particles)
+    count = len(hypotheses.names)
+    z = prior.sample(rng, count * particles).reshape(count, particles, -1).astype(np.float32)
+    for h in range(count):
+        z[h, :, SLICES["kappa"]] = CLASS_LOGITS[hypotheses.classes[h]]
+        if np.isfinite(hypotheses.specular_mean[h]):
+            z[h, :, SLICES["specular"].start] = (hypotheses.specular_mean[h]
+                                                 + hypotheses.specular_sd[h] * rng.standard_normal(particles))
     return z
 
 
-def hypothesis_log_prior(prior):
+def hypothesis_log_prior(prior, hypotheses: Hypotheses):
     """log p(z | h) for one position and hypothesis index (JAX): the model's prior without the class
-    term, with the specular weight's density that of h's component."""
+    term, the specular weight's density that of h's component when h names one."""
     import jax.numpy as jnp
     from jax.scipy.stats import norm
 
-    _, means, sds = hypothesis_priors(prior)
     spec = SLICES["specular"].start
+    means, sds = jnp.asarray(np.nan_to_num(hypotheses.specular_mean)), jnp.asarray(np.nan_to_num(hypotheses.specular_sd, nan=1.0))
+    own = jnp.asarray(np.isfinite(hypotheses.specular_mean))
 
     def log_prior(z, h):
         parts = prior.log_prob_parts(z)
         rest = sum(v for k, v in parts.items() if k not in ("kappa", "specular"))
-        return rest + norm.logpdf(z[spec], jnp.asarray(means)[h], jnp.asarray(sds)[h])
+        return rest + jnp.where(own[h], norm.logpdf(z[spec], means[h], sds[h]), parts["specular"])
 
     return log_prior
 
 
-def next_increment(loglikelihood: np.ndarray, remaining: float, target_ess: float) -> float:
-    """The largest tempering increment <= ``remaining`` whose incremental weights keep ESS >= target."""
+def next_increment(loglikelihood: np.ndarray, remaining: float, target_ess: float, offset=0.0) -> float:
+    """The largest tempering increment <= ``remaining`` whose incremental weights
+    ``step * loglikelihood + offset`` keep ESS >= target."""
     def ess(step):
-        w = step * (loglikelihood - loglikelihood.max())
+        w = step * (loglikelihood - loglikelihood.max()) + offset
         w = np.exp(w - w.max())
         return w.sum() ** 2 / np.sum(w ** 2) / len(w)
 
@@ -133,17 +157,48 @@ def systematic_resample(rng: np.random.Generator, log_weights: np.ndarray, count
     return np.minimum(np.searchsorted(cumulative, positions), len(w) - 1)
 
 
+def footprint_start(core, observation, draws: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Place every other first-step draw (H, M, 15, in place) from the image's footprint
+    (:mod:`mitsuba_p3.infer.footprint`) and return each draw's log importance weight (H, M),
+    log prior - log (defensive mixture), for the position; zeros when there is no footprint."""
+    from ..render.jax_tracer import camera_rays
+    from .footprint import DEFENSIVE_WEIGHT, FootprintProposal, footprint_mask, shift_log_prior
+
+    threshold = core.footprint_threshold
+    if threshold is None:
+        return np.zeros(draws.shape[:2])
+    renderer = core.renderer
+    origin, directions = camera_rays(core.fitted.scene().camera, renderer.height, renderer.width)
+    mask = footprint_mask(observation["image"], core.empty, threshold)
+    bound = core.prior.config.shift_bound
+    proposal = FootprintProposal.of(mask, origin, directions, bound, rng)
+    if proposal is None:
+        return np.zeros(draws.shape[:2])
+    flat = draws.reshape(-1, draws.shape[-1])
+    scale = np.exp(flat[:, SLICES["scale"]].astype(np.float64))
+    placed = np.arange(len(flat)) % 2 == 1
+    shift = np.asarray(core.prior.constrain(flat)["shift"], np.float64)
+    shift[placed] = proposal.sample(rng, scale[placed])
+    u = np.clip((shift + bound) / (2 * bound), 1e-7, 1 - 1e-7)
+    flat[:, SLICES["shift"]] = np.log(u) - np.log1p(-u)
+    log_p = shift_log_prior(core.prior, shift)
+    log_q = np.logaddexp(np.log(DEFENSIVE_WEIGHT) + log_p,
+                         np.log1p(-DEFENSIVE_WEIGHT) + proposal.log_density(shift, scale))
+    draws[:] = flat.reshape(draws.shape)
+    return (log_p - log_q).reshape(draws.shape[:2])
+
+
 @functools.lru_cache(maxsize=4)
-def _kernels(core, walk_mask: tuple):
-    """Jitted (score, move) for one :class:`PosteriorCore`: scores of all particles, and one sweep of
+def _kernels(core, walk_mask: tuple, kinds: bool):
+    """Jitted (score, walk, material) for one :class:`PosteriorCore`: scores of all particles, and the two
     moves of all particles at per-hypothesis temperatures."""
     import jax
     import jax.numpy as jnp
     from blackjax.mcmc.random_walk import RWState
 
-    log_prior = hypothesis_log_prior(core.prior)
+    log_prior = hypothesis_log_prior(core.prior, hypotheses_of(core.prior, kinds))
     mask = jnp.asarray(walk_mask, jnp.float32)
-    hypotheses = len(HYPOTHESES)
+    hypotheses = len(hypotheses_of(core.prior, kinds).names)
 
     def loglik_all(z, observation):                               # (H, N, d) -> (H, N)
         flat = z.reshape(-1, z.shape[-1])
@@ -158,9 +213,9 @@ def _kernels(core, walk_mask: tuple):
         return loglik_all(z, observation), logprior_all(z)
 
     @jax.jit
-    def sweep(key, state, tempering, tril, observation):
-        """Walk (with the symmetry move), then the material update; returns (state, walk acceptance (H,))."""
-        k_walk, k_accept, k_symmetry, k_material = jax.random.split(key, 4)
+    def walk(key, state, tempering, tril, observation):
+        """The random walk, then the symmetry move; returns (state, walk acceptance (H,))."""
+        k_walk, k_accept, k_symmetry = jax.random.split(key, 3)
         z, loglik, logprior = state
         noise = jax.random.normal(k_walk, z.shape) * mask
         proposed = z + jnp.einsum("hij,hnj->hni", tril, noise)
@@ -172,23 +227,28 @@ def _kernels(core, walk_mask: tuple):
         # symmetry: no render; the tempered density changes only through the yaw prior
         flat = RWState(z.reshape(-1, z.shape[-1]), logprior.reshape(-1))
         turned = jax.vmap(core.symmetry_move)(jax.random.split(k_symmetry, flat.position.shape[0]), flat)
-        z, logprior = turned.position.reshape(z.shape), turned.logdensity.reshape(logprior.shape)
-        # material Metropolis-within-Gibbs at each hypothesis's temperature
+        return SMCState(turned.position.reshape(z.shape), loglik, turned.logdensity.reshape(logprior.shape)), \
+            accept.mean(axis=1)
+
+    @jax.jit
+    def material(key, state, tempering, observation):
+        """The material Metropolis-within-Gibbs update at each hypothesis's temperature (one render of
+        the material bases per particle, then one render to score the result)."""
+        z, loglik, logprior = state
         h = jnp.repeat(jnp.arange(hypotheses), z.shape[1])
         lam = jnp.repeat(tempering, z.shape[1])
 
-        def material(key, position, logprior_value, loglik_value, index, lam_value):
+        def one(key, position, logprior_value, loglik_value, index, lam_value):
             state = RWState(position, logprior_value + lam_value * loglik_value)
             new, _ = core.material_move(key, state, observation, lam_value, lambda p: log_prior(p, index))
             return new.position
 
-        keys = jax.random.split(k_material, h.shape[0])
-        moved = jax.vmap(material)(keys, z.reshape(-1, z.shape[-1]), logprior.reshape(-1), loglik.reshape(-1),
-                                   h, lam).reshape(z.shape)
-        new_loglik, new_logprior = loglik_all(moved, observation), logprior_all(moved)
-        return SMCState(moved, new_loglik, new_logprior), accept.mean(axis=1)
+        keys = jax.random.split(key, h.shape[0])
+        moved = jax.vmap(one)(keys, z.reshape(-1, z.shape[-1]), logprior.reshape(-1), loglik.reshape(-1),
+                              h, lam).reshape(z.shape)
+        return SMCState(moved, loglik_all(moved, observation), logprior_all(moved))
 
-    return score, sweep
+    return score, walk, material
 
 
 def sample_smc(core, observation, config: SMCConfig | None = None,
@@ -204,21 +264,23 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
     mask = np.ones(DIMENSION, np.float32)
     for name in ("kappa", "colour", "ambient", "diffuse", "specular"):
         mask[SLICES[name]] = 0.0          # fixed by the hypothesis, or the material update's business
-    score, sweep = _kernels(core, tuple(mask.tolist()))
-    hypotheses, n = len(HYPOTHESES), config.particles
+    score, walk, material = _kernels(core, tuple(mask.tolist()), config.kinds)
+    space = hypotheses_of(core.prior, config.kinds)
+    hypotheses, n = len(space.names), config.particles
     # the first reweighting starts from oversample x N prior draws and keeps N: a valid SMC step
     # (its evidence increment averages over all draws) that finds the object with few particles
-    draws = initial_particles(core.prior, rng, n * config.oversample)
+    draws = initial_particles(core.prior, rng, n * config.oversample, space)
+    offset = footprint_start(core, observation, draws, rng) if config.footprint else np.zeros(draws.shape[:2])
     all_loglik, all_logprior = (np.asarray(a) for a in score(jnp.asarray(draws), observation))
     z = np.empty((hypotheses, n) + draws.shape[2:], np.float32)
     loglik, logprior = np.empty((hypotheses, n), np.float32), np.empty((hypotheses, n), np.float32)
     tempering, log_evidence = np.zeros(hypotheses), np.zeros(hypotheses)
     for h in range(hypotheses):
         ll = np.where(np.isfinite(all_loglik[h]), all_loglik[h], -1e30)
-        step = next_increment(ll, 1.0, config.target_ess / config.oversample)
-        log_evidence[h] = np.logaddexp.reduce(step * ll) - np.log(len(ll))
+        step = next_increment(ll, 1.0, config.target_ess / config.oversample, offset[h])
+        log_evidence[h] = np.logaddexp.reduce(step * ll + offset[h]) - np.log(len(ll))
         tempering[h] = step
-        index = systematic_resample(rng, step * ll, n)
+        index = systematic_resample(rng, step * ll + offset[h], n)
         z[h], loglik[h], logprior[h] = draws[h][index], all_loglik[h][index], all_logprior[h][index]
     scale = np.full(hypotheses, 1.0)
     acceptance_history, steps = [], 0
@@ -244,10 +306,14 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
             tril[h][np.ix_(moved, moved)] = np.linalg.cholesky(cov) * 2.38 / np.sqrt(moved.sum()) * scale[h]
         state = SMCState(jnp.asarray(z), jnp.asarray(loglik), jnp.asarray(logprior))
         rates = []
-        for _ in range(config.mcmc_steps + (config.final_steps if np.all(tempering >= 1.0) else 0)):
-            key, sub = jax.random.split(key)
-            state, accepted = sweep(sub, state, jnp.asarray(tempering, jnp.float32), jnp.asarray(tril), observation)
+        lam = jnp.asarray(tempering, jnp.float32)
+        sweeps = config.mcmc_steps + (config.final_steps if np.all(tempering >= 1.0) else 0)
+        for i in range(sweeps):
+            key, k_walk, k_material = jax.random.split(key, 3)
+            state, accepted = walk(k_walk, state, lam, jnp.asarray(tril), observation)
             rates.append(np.asarray(accepted))
+            if (i + 1) % config.material_every == 0 or i == sweeps - 1:
+                state = material(k_material, state, lam, observation)
         z, loglik, logprior = (np.array(a) for a in state)
         rate = np.mean(rates, axis=0)
         scale *= np.clip(np.exp(2.0 * (rate - 0.25)), 0.5, 2.0)   # towards 25% walk acceptance
@@ -256,8 +322,7 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
             progress("smc", int(100 * tempering.min()), 100)
         if np.all(tempering >= 1.0):
             break
-    log_prior_h, _, _ = hypothesis_priors(core.prior)
-    log_posterior = log_prior_h + log_evidence
+    log_posterior = space.log_prior + log_evidence
     weights = np.exp(log_posterior - np.logaddexp.reduce(log_posterior))
     # draws: hypotheses by their posterior weight, particles uniformly (equal weights after resampling)
     chains = 4
@@ -266,8 +331,10 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
     chosen_n = rng.integers(config.particles, size=chains * per_chain)
     positions = z[chosen_h, chosen_n].reshape(chains, per_chain, -1)
     logdensity = (logprior + loglik)[chosen_h, chosen_n].reshape(chains, per_chain)
-    statistics = {"hypotheses": {name: {"log_evidence": float(log_evidence[h]), "weight": float(weights[h])}
-                                 for h, name in enumerate(HYPOTHESES)},
+    shiny = z[..., SLICES["specular"].start] > core.prior.specular_threshold()          # (H, N)
+    statistics = {"hypotheses": {name: {"log_evidence": float(log_evidence[h]), "weight": float(weights[h]),
+                                        "shiny": float(shiny[h].mean())}
+                                 for h, name in enumerate(space.names)},
                   "temperatures": steps, "forced": bool(steps == config.max_temperatures),
                   "walk_acceptance": float(np.mean(acceptance_history[-1])),
                   "seconds": time.perf_counter() - start}
