@@ -12,14 +12,17 @@ run resumes), then prints JSON, the settings side by side:
   seed's run as one chain; the median and the 90th percentile over images;
 - ``log_evidence_spread``: for samplers that estimate an evidence (none of the MH settings).
 
-Settings: ``mh-paper`` is the MH evaluation preset with the paper's likelihood (sigma 1, no
-shadows), the project's old default; ``mh-fitted`` the same sampler with the fitted noise model
-(opt-in); ``smc-fitted`` tempered SMC over the hypotheses with the fitted noise model. Needs a benchmark folder and a model fitted to it:
+Settings: ``smc`` is the default of ``infer`` and ``evaluate`` (tempered SMC over the shape classes,
+the fitted Gaussian noise model with hard shadows); ``smc-robust`` the same with the fitted
+inlier/outlier mixture; ``mh-paper`` the MH evaluation preset with the paper's likelihood
+(sigma 1, no shadows), the project's old default; ``mh-fitted`` that sampler with the fitted
+noise. ``NAME:S`` runs a setting with S seeds instead of ``--seeds``. Needs a benchmark folder
+and a model fitted to it:
 
     mitsuba-p3 benchmark generate fsclvr --out data/fsclvr
     mitsuba-p3 fit data/fsclvr --out data/models/fsclvr
     python scripts/bench_infer.py [--dataset data/fsclvr] [--model data/models/fsclvr] [--out out/bench-infer]
-        [--configs mh-paper,mh-fitted] [--seeds 4] [--images 120] [--jobs 2]
+        [--configs smc,mh-paper:1] [--seeds 4] [--images 120] [--jobs 2]
 """
 from __future__ import annotations
 
@@ -40,7 +43,7 @@ from mitsuba_p3.fit.model import FittedModel
 from mitsuba_p3.infer.smc import SMCConfig
 
 CONFIGS = {"mh-paper": {"noise": "paper"}, "mh-fitted": {"noise": "fitted"},
-           "smc-fitted": {"noise": "fitted", "sampler": SMCConfig()}}
+           "smc": {"noise": "fitted", "sampler": SMCConfig()}, "smc-robust": {"noise": "robust", "sampler": SMCConfig()}}
 CHECKED = ("shift", "scale", "colour")
 
 
@@ -75,12 +78,13 @@ def main() -> None:
     parser.add_argument("--dataset", default="data/fsclvr")
     parser.add_argument("--model", default="data/models/fsclvr")
     parser.add_argument("--out", type=Path, default=Path("out/bench-infer"))
-    parser.add_argument("--configs", default="mh-paper,mh-fitted")
+    parser.add_argument("--configs", default="smc,mh-paper")
     parser.add_argument("--seeds", type=int, default=4)
     parser.add_argument("--images", type=int, default=None, help="evenly spaced test images (default: all)")
     parser.add_argument("--jobs", type=int, default=len(os.sched_getaffinity(0)))
     args = parser.parse_args()
-    unknown = [c for c in args.configs.split(",") if c not in CONFIGS]
+    chosen = {c.partition(":")[0]: int(c.partition(":")[2] or args.seeds) for c in args.configs.split(",")}
+    unknown = [c for c in chosen if c not in CONFIGS]
     if unknown:
         parser.error(f"unknown settings {unknown}; choose from {', '.join(CONFIGS)}")
     dataset = load_dataset(args.dataset)
@@ -89,9 +93,9 @@ def main() -> None:
         tests = [tests[i] for i in np.unique(np.linspace(0, len(tests) - 1, args.images).astype(int))]
     rules = rules_for(FittedModel(args.model), dataset)
     report = {"dataset": args.dataset, "images": len(tests), "seeds": args.seeds, "settings": {}}
-    for name in args.configs.split(","):
+    for name, seeds in chosen.items():
         runs = []
-        for seed in range(args.seeds):
+        for seed in range(seeds):
             run_dir = args.out / f"{name}-seed{seed}"
             settings = CONFIGS[name]
             sampler = replace(settings.get("sampler", PRESET), seed=seed)
@@ -107,7 +111,8 @@ def main() -> None:
                  **{k: round(v, 4) for k, v in recovered.items()},
                  "max_r_hat_within_run_median": float(np.median([p.max_r_hat for p in runs[0].values()])),
                  "log_evidence_spread": _evidence_spread(runs)}
-        if args.seeds > 1:
+        entry["seeds"] = seeds
+        if seeds > 1:
             r_hats = [r_hat_across_seeds([run[s.index] for run in runs]) for s in tests]
             entry["max_r_hat_across_seeds_median"] = float(np.median(r_hats))
             entry["max_r_hat_across_seeds_p90"] = float(np.percentile(r_hats, 90))

@@ -355,3 +355,49 @@ def make_renderer_image(fitted):
     from mitsuba_p3.render import make_renderer
 
     return make_renderer(fitted.scene(), "mitsuba", height=120, width=160, shadows=True).render(TRUTH)
+
+
+# ------------------------------------------------------------------ simulation-based calibration
+def test_sbc_ranks_are_uniform_for_an_exact_posterior_and_not_for_a_narrow_one():
+    """A conjugate normal model, where exact posterior draws are known: SBC's ranks pass the uniformity
+    test; a sampler half as wide as the posterior fails it."""
+    from mitsuba_p3.evaluate.sbc import rank_of, uniformity
+
+    rng = np.random.default_rng(0)
+    ranks = {"exact": [], "narrow": []}
+    for _ in range(400):
+        theta = rng.standard_normal(2)
+        y = theta + rng.standard_normal(2)                    # posterior N(y / 2, 1 / 2)
+        for name, sd in (("exact", np.sqrt(0.5)), ("narrow", np.sqrt(0.5) / 2)):
+            ranks[name].append(rank_of(theta, y / 2 + sd * rng.standard_normal((49, 2)), rng))
+    _, p_exact = uniformity(np.array(ranks["exact"]), 49, 10)
+    _, p_narrow = uniformity(np.array(ranks["narrow"]), 49, 10)
+    assert np.all(p_exact > 1e-3) and np.all(p_narrow < 1e-6)
+
+
+def test_sbc_runs_on_the_phong_model_and_resumes(fitted, tmp_path):
+    """A tiny SBC of the SMC on the Phong model: ranks in range, class probabilities a distribution,
+    and a second call with the same cache continues the first run instead of redoing it."""
+    import sys
+    from pathlib import Path
+
+    from mitsuba_p3.errors import ConfigError
+    from mitsuba_p3.evaluate.sbc import run_sbc
+    from mitsuba_p3.infer.model import PosteriorCore
+    from mitsuba_p3.infer.smc import SMCConfig
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+    from sbc import smc_sampler
+
+    core = PosteriorCore(fitted, LikelihoodConfig("p3", sigma=0.2, shadows=True), "mitsuba", *RES)
+    sample = smc_sampler(core, SMCConfig(particles=4, oversample=2, mcmc_steps=1, final_steps=0, draws=16))
+    cache = tmp_path / "cache.npz"
+    first = run_sbc(core, sample, 2, 9, cache=cache)
+    assert first.ranks.shape == (2, 8) and first.ranks.min() >= 0 and first.ranks.max() <= 9
+    np.testing.assert_allclose(first.class_probabilities.sum(axis=1), 1.0)
+    calls = []
+    more = run_sbc(core, lambda o, s: (calls.append(s), sample(o, s))[1], 3, 9, cache=cache)
+    assert len(calls) == 1 and np.array_equal(more.ranks[:2], first.ranks)
+    assert set(more.summary()["rank_uniformity_p"]) and 0 <= more.summary()["class"]["ece"] <= 1
+    with pytest.raises(ConfigError, match="power 1"):
+        run_sbc(PosteriorCore(fitted, LikelihoodConfig("p3", sigma=0.03, power=0.1), "mitsuba", *RES), sample, 1, 9)

@@ -123,7 +123,7 @@ class CachedPosterior:
     seconds: float
     max_r_hat: float
     min_ess: float
-    log_evidence: np.ndarray | None = None       # per hypothesis (space.HYPOTHESES), SMC only
+    log_evidence: np.ndarray | None = None       # per hypothesis the SMC weighed (shape classes by default)
     shift_samples: np.ndarray | None = None      # (n, 2) posterior draws of the position (newer caches)
 
     @classmethod

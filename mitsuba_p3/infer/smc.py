@@ -1,30 +1,43 @@
-"""Tempered sequential Monte Carlo over the discrete hypotheses: shape class x material kind.
+"""Tempered sequential Monte Carlo over the discrete hypotheses: the shape classes.
 
 A random walk over a relaxed one-hot class cannot cross between shape modes once
-the likelihood is sharp. Here each hypothesis h (sphere, cube or cylinder, times
-the matte or shiny component of the specular prior) is a posterior of its own,
-over the continuous parameters, and its *evidence* Z_h = p(I | h) decides between
-them:
+the likelihood is sharp. Here each hypothesis h (sphere, cube or cylinder) is a
+posterior of its own, over the continuous parameters, and its *evidence*
+Z_h = p(I | h) decides between them:
 
-    p(h | I) = p(h) Z_h / sum_h' p(h') Z_h',    p(h) = 1/3 x (weight of h's specular component).
+    p(h | I) = p(h) Z_h / sum_h' p(h') Z_h',    p(h) the prior's class probability.
 
 Each hypothesis runs a tempered SMC (Del Moral et al. 2006; blackjax's
-``adaptive_tempered_smc`` is the same algorithm): N particles drawn from the prior
-given h move through the targets p(z | h) p(I | z)^lambda as lambda rises from 0
-to 1. Each step chooses the increment of lambda by bisection so that the
-incremental weights keep an effective sample size of ``target_ess`` N, adds
-log mean exp(dlambda log p(I | z)) to log Z_h, resamples (systematic), and moves
-every particle with ``mcmc_steps`` sweeps of the moves the MH sampler uses: a
-Gaussian random walk (covariance 2.38^2 / d times the particles' own, scaled
-towards 25% acceptance), the symmetry move, and the material Metropolis-within-
-Gibbs update, all at the current temperature. All particles of all hypotheses
-are scored in one batched render per move.
+``adaptive_tempered_smc`` is the same algorithm): N particles move through the
+targets p(z | h) p(I | z)^lambda as lambda rises from 0 to 1. Each step chooses
+the increment of lambda by bisection so that the incremental weights keep an
+effective sample size of ``target_ess`` N, adds log mean exp(dlambda log p(I | z))
+to log Z_h, resamples (systematic), and moves every particle with ``mcmc_steps``
+sweeps of the moves the MH sampler uses: a Gaussian random walk over position,
+yaw and size (covariance 2.38^2 / d times the particles' own, scaled towards 25%
+acceptance) with the symmetry move after it, and every ``material_every`` sweeps
+the material Metropolis-within-Gibbs update (one render of the material bases,
+the costliest move), all at the current temperature. All particles of all
+hypotheses are scored in one batched render per move.
 
-Within a hypothesis the class logits are fixed (they play no role) and the
-specular weight's prior is the one Gaussian component of h; the rest of the prior
-is the model's. The result is a :class:`~mitsuba_p3.infer.mcmc.SamplerRun` of
-draws from the mixture over hypotheses, with each hypothesis's log evidence and
-weight in its statistics.
+**The first step starts from the image.** It draws ``oversample`` x N scenes per
+hypothesis, half from the prior and half with their position taken from the
+image's footprint (:mod:`mitsuba_p3.infer.footprint`), weighs each by
+prior / (the mixture of both) times its likelihood^lambda_1, and keeps N: an
+importance-sampling step whose evidence estimate is unbiased, so the footprint
+makes the search cheaper without changing what is estimated.
+
+**Material kind.** By default the matte/shiny decision is left inside each shape's
+run: the specular weight keeps the prior's two-component mixture, the material
+update proposes from both components, and p(shiny | h, I) is the particles' share
+above the prior's threshold (``shiny`` in the statistics). ``kinds=True`` makes
+shape x material kind six hypotheses of their own instead (twice the cost; their
+specular priors are the mixture's components).
+
+Within a hypothesis the class logits are fixed (they play no role); the rest of
+the prior is the model's. The result is a :class:`~mitsuba_p3.infer.mcmc.SamplerRun`
+of draws from the mixture over hypotheses, with each hypothesis's log evidence,
+weight and shiny share in its statistics.
 """
 from __future__ import annotations
 
