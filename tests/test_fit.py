@@ -345,3 +345,34 @@ def test_material_refinement_recovers_a_visible_highlight():
     got = refined["blue-metal"]
     assert 15.0 <= got["shininess"] <= 64.0 and got["specular"] == pytest.approx(0.9, rel=0.25)
     assert np.sqrt(errors["blue-metal"] / images.size) < 0.005   # RMS per pixel and channel
+
+
+def test_attribute_rules_name_a_dim_metal_by_its_hue_and_learn_the_material_kind():
+    """The colour rule compares chromaticities with each train material's own: a dark purple metal
+    (a posterior whose reflectance is half the purple rubber's) is purple, not the grey whose
+    brightness it shares; the material kind comes from the logistic regression on the train weights."""
+    from mitsuba_p3.fit.attributes import AttributeRules
+
+    def material(colour, ambient, diffuse, specular, shininess):
+        return {"colour": list(colour), "ambient": ambient, "diffuse": diffuse, "specular": specular,
+                "shininess": shininess}
+
+    materials = {"purple-metal": material((0.6, 0.09, 1.0), 0.4, 0.04, 2.0, 8.0),
+                 "purple-rubber": material((0.7, 0.48, 1.0), 0.3, 0.5, 0.0, 4.0),
+                 "gray-metal": material((0.55, 0.65, 0.6), 0.2, 0.04, 1.7, 8.0),
+                 "gray-rubber": material((0.45, 0.55, 0.48), 0.3, 0.5, 0.3, 4.0),
+                 "red-metal": material((1.0, 0.15, 0.08), 0.5, 0.1, 1.2, 8.0),
+                 "red-rubber": material((0.8, 0.33, 0.3), 0.3, 0.4, 0.2, 4.0)}
+    rules = AttributeRules.from_materials(materials, {"cyan": (29, 208, 208)})
+    n = 50
+    metal_sample = {"class": np.zeros(n, int), "scale": np.full((n, 3), 0.034),
+                    "colour": np.tile([0.33, 0.085, 0.55], (n, 1)), "ambient": np.full((n, 1), 0.43),
+                    "diffuse": np.full((n, 1), 0.07), "specular": np.full((n, 1), 1.8), "shininess": np.full((n, 1), 8.0)}
+    decided = rules.decide(metal_sample)
+    assert (decided["shape"], decided["size"], decided["colour"], decided["material"]) == \
+        ("sphere", "large", "purple", "metal")
+    rubber = {**metal_sample, "scale": np.full((n, 3), 0.018), "ambient": np.full((n, 1), 0.3),
+              "diffuse": np.full((n, 1), 0.5), "specular": np.full((n, 1), 0.1), "shininess": np.full((n, 1), 4.0),
+              "colour": np.tile([0.1, 0.8, 0.8], (n, 1))}
+    decided = rules.decide(rubber)
+    assert (decided["size"], decided["colour"], decided["material"]) == ("small", "cyan", "rubber")

@@ -10,11 +10,15 @@ metal sphere?". :class:`AttributeRules` turns posterior samples into those words
   posterior medians;
 - **size** (small or large): the protocol size nearest, in log space, to the
   median of the posterior's half-extents;
-- **colour**: the colour name whose fitted train reflectance c (k_a + k_d) (mean
-  over that colour's materials) is nearest to the posterior median of the same
-  product. The product, not c alone: the image fixes c k_a and c k_d, while c and
-  the weights trade off along a ridge. A colour never seen in training falls back
-  to its label RGB times the train materials' mean k_a + k_d.
+- **colour**: the colour name of the fitted train material whose *chromaticity*
+  (reflectance c (k_a + k_d) divided by its sum) is nearest to that of the
+  posterior median reflectance. The product, not c alone: the image fixes c k_a
+  and c k_d, while c and the weights trade off along a ridge. Chromaticity, not
+  the reflectance itself: its brightness trades off against the specular weight
+  and the light (a metal's fitted reflectance is half a rubber's of the same
+  colour), while its hue names the colour; and each material on its own, not a
+  colour's mean over rubber and metal, which lies between the two. A colour
+  never seen in training falls back to its label RGB.
 
 Every rule is fitted on train classes or fixed by the protocol; nothing is tuned
 on test images.
@@ -46,14 +50,21 @@ def reflectance(material) -> np.ndarray:
     return product[0] if np.ndim(material["colour"]) == 1 else product
 
 
+def chromaticity(rgb: np.ndarray) -> np.ndarray:
+    """rgb / (r + g + b): the colour without its brightness (black: equal thirds)."""
+    rgb = np.maximum(np.asarray(rgb, np.float64), 0.0)
+    total = rgb.sum(axis=-1, keepdims=True)
+    return np.where(total > 1e-9, rgb / np.maximum(total, 1e-9), 1.0 / 3.0)
+
+
 @dataclass
 class AttributeRules:
     """Decision rules from posterior samples to attribute names (see the module docstring)."""
 
     material_model: object | None           # a fitted sklearn pipeline, or None (one kind only)
     only_kind: str | None                    # the kind when training had just one
-    colour_names: list[str]
-    colour_albedos: np.ndarray               # (colours, 3)
+    colour_names: list[str]                  # per reference: its colour name
+    colour_albedos: np.ndarray               # (references, 3) chromaticities of the train materials
 
     @classmethod
     def from_materials(cls, materials: dict[str, dict], extra_colours: dict[str, tuple] | None = None
@@ -70,16 +81,12 @@ class AttributeRules:
         if len(present) == 2:
             model = make_pipeline(StandardScaler(), LogisticRegression(C=1.0)).fit(
                 _weights(materials[k] for k in keys), np.array([KINDS.index(k) for k in kinds]))
-        albedos: dict[str, list] = {}
-        for key in keys:
-            albedos.setdefault(key.rsplit("-", 1)[0], []).append(reflectance(materials[key]))
-        names = sorted(albedos)
-        centres = [np.mean(albedos[n], axis=0) for n in names]
-        weight = float(np.mean([materials[k]["ambient"] + materials[k]["diffuse"] for k in keys]))
+        names = [key.rsplit("-", 1)[0] for key in keys]
+        centres = [chromaticity(reflectance(materials[key])) for key in keys]
         for name, rgb in (extra_colours or {}).items():   # colours the fit never saw: their label RGB (0-255)
-            if name not in albedos:
+            if name not in names:
                 names.append(name)
-                centres.append(weight * np.asarray(rgb, np.float64) / 255.0)
+                centres.append(chromaticity(np.asarray(rgb, np.float64)))
         return cls(model, only, names, np.array(centres, np.float64))
 
     def decide(self, samples: dict) -> dict:
@@ -95,7 +102,7 @@ class AttributeRules:
             kind, metal = self.only_kind, float(self.only_kind == "metal")
         half_extent = float(np.median(np.asarray(samples["scale"])))
         size = min(SIZES, key=lambda s: abs(np.log(half_extent / SIZES[s])))
-        colour = np.median(reflectance(samples), axis=0)
+        colour = chromaticity(np.median(reflectance(samples), axis=0))
         nearest = self.colour_names[int(np.argmin(np.sum((self.colour_albedos - colour) ** 2, axis=1)))]
         return {"shape": SHAPES[int(np.argmax(counts))], "shape_probabilities": shape_probabilities.tolist(),
                 "material": kind, "p_metal": metal, "size": size, "half_extent_m": half_extent, "colour": nearest}
