@@ -311,12 +311,17 @@ def test_fitted_noise_and_the_paper_likelihood(tiny_model):
     noise = json.loads((tiny_model.root / "noise.json").read_text())
     assert 0 < noise["model"]["sigma"] < 0.3 and 0 < noise["model"]["outlier"] < 0.5
     assert 0 < noise["model"]["power"] <= 1 and noise["figures"]["correlation_area_pixels"] >= 1
-    fitted = default_likelihood(tiny_model, "p3", noise="fitted")
+    model = noise["model"]
+    fitted = default_likelihood(tiny_model, "p3", noise="fitted")          # the Gaussian form
     assert (fitted.sigma, fitted.outlier, fitted.object_outlier, fitted.power, fitted.shadows) == (
-        noise["model"]["sigma"], noise["model"]["outlier"], noise["model"]["object_outlier"], noise["model"]["power"],
-        True)
+        model["gaussian_sigma"], 0.0, None, model["power"], True)
+    assert model["gaussian_sigma"] == pytest.approx(noise["figures"]["residual_rms"])
+    assert 0 < model["footprint"] < 1
+    robust = default_likelihood(tiny_model, "p3", noise="robust")          # the mixture
+    assert (robust.sigma, robust.outlier, robust.object_outlier, robust.power, robust.shadows) == (
+        model["sigma"], model["outlier"], model["object_outlier"], model["power"], True)
     assert 0 < noise["model"]["object_outlier"] < 1 and noise["figures"]["object_pixels"] > 0
-    paper = default_likelihood(tiny_model, "p3")                    # the default
+    paper = default_likelihood(tiny_model, "p3")                    # the function's default
     assert (paper.sigma, paper.outlier, paper.power, paper.shadows) == (1.0, 0.0, 1.0, False)
     assert default_likelihood(tiny_model, "p3", sigma=0.35).sigma == 0.35
     with pytest.raises(MitsubaP3Error, match="noise model"):
