@@ -12,10 +12,9 @@ fits and per-image posteriors already on disk are reused. Writes, in ``out``:
 - ``runs/V``: one evaluation run folder per benchmark, with its own tables and figures;
 - ``timing.json``: the minutes of every benchmark of every invocation.
 
-Runs with the paper's likelihood (``noise="paper"``, the MH preset) go to
-``runs/V``; runs with each model's fitted noise model (the default, sampled by
-tempered SMC) to ``runs/V-fitted``, with another sigma to ``runs/V-sigmaS``; each
-gets its own rows; another distance scores the same posteriors and its tables go to
+The default likelihood is the paper's; runs with each model's fitted noise model
+go to ``runs/V-fitted``, with another sigma to ``runs/V-sigmaS``, and get their
+own rows; another distance scores the same posteriors and its tables go to
 ``runs/V/distance-TERMS`` (rows such as "NP3 (colour+class)"). Baselines
 evaluated into ``runs/V`` (``mitsuba-p3 baseline evaluate TRAINED data/V --out
 OUT/runs/V``) join the accuracy table.
@@ -33,7 +32,7 @@ from typing import Callable
 
 from .benchmarks.protocol import VARIANTS
 from .errors import ConfigError
-from .evaluate import SETTINGS, EvaluationConfig, evaluate, load_baselines, markdown_table, setting_name
+from .evaluate import PRESET, SETTINGS, EvaluationConfig, evaluate, load_baselines, markdown_table, setting_name
 from .files import atomic_json, atomic_open, atomic_write
 
 PAPER_ACCURACY = {  # shared/PAPER_NOTES.md: 5w1s / 5w5s / 10w1s / 10w5s (their data sets)
@@ -54,10 +53,10 @@ TITLES = {"fsclvr": "FS-CLVR", "room": "ROOM", "dark": "DARK", "ood": "OOD"}
 
 @dataclass(frozen=True)
 class ReproduceConfig:
-    """Which benchmarks, and how each is evaluated (default: the fitted noise model, tempered SMC)."""
+    """Which benchmarks, and how each is evaluated (the sampler defaults to :data:`~mitsuba_p3.evaluate.PRESET`)."""
 
     benchmarks: tuple = COLUMNS
-    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
+    evaluation: EvaluationConfig = field(default_factory=lambda: EvaluationConfig(sampler=PRESET))
 
     def __post_init__(self):
         object.__setattr__(self, "benchmarks", tuple(self.benchmarks))

@@ -59,3 +59,20 @@ def test_bad_input_is_one_error_line(tmp_path, case):
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error:"), done.stderr
     assert not (tmp_path / "out.png").exists()
+
+
+def test_sampler_auto_follows_the_noise_model():
+    """--sampler auto: SMC under a fitted noise model, MH under the paper's (and at an explicit sigma)."""
+    from mitsuba_p3.cli.pipeline_commands import choose_sampler
+    from mitsuba_p3.errors import ConfigError
+    from mitsuba_p3.infer.mcmc import SamplerConfig
+    from mitsuba_p3.infer.smc import SMCConfig
+
+    mh = SamplerConfig(seed=3)
+    assert choose_sampler("auto", mh, 16, "fitted", None) == SMCConfig(particles=16, seed=3)
+    assert choose_sampler("auto", mh, 16, "robust", None) == SMCConfig(particles=16, seed=3)
+    assert choose_sampler("auto", mh, 16, "paper", None) is mh
+    assert choose_sampler("auto", mh, 16, "fitted", 0.35) is mh
+    assert choose_sampler("smc", mh, 16, "paper", None) == SMCConfig(particles=16, seed=3)
+    with pytest.raises(ConfigError, match="choose auto, smc or mh"):
+        choose_sampler("nuts", mh, 16, "paper", None)

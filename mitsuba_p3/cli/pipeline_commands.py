@@ -15,19 +15,25 @@ from .app import app, phase_progress_bar, progress_bar, sampler_option
 
 
 NOISE_HELP = ("Noise model: fitted (the Gaussian fitted to the model's train residuals, with hard shadows), "
-              "robust (the fitted inlier/outlier mixture) or paper (sigma 1, no shadows; the paper's rows, with "
-              "--sampler mh).")
+              "robust (the fitted inlier/outlier mixture) or paper (sigma 1, no shadows: the paper's).")
+SAMPLER_HELP_TEXT = ("auto (smc under a fitted noise model, mh under the paper's), smc (tempered SMC over the "
+                     "shape classes, weighed by their evidence) or mh (multi-chain Metropolis-Hastings; the chain "
+                     "options apply).")
 
 
-def choose_sampler(name: str, mh: SamplerConfig, particles: int) -> SamplerConfig | SMCConfig:
-    """The sampler a command's --sampler names: the MH settings given, or SMC with their seed."""
+def choose_sampler(name: str, mh: SamplerConfig, particles: int, noise: str, sigma: float | None
+                   ) -> SamplerConfig | SMCConfig:
+    """The sampler a command's --sampler names: the MH settings given, or SMC with their seed; ``auto``
+    is SMC under a fitted noise model and MH under the paper's (the sampler each was measured with)."""
     from ..errors import ConfigError
 
+    if name == "auto":
+        name = "mh" if noise == "paper" or sigma is not None else "smc"
     if name == "mh":
         return mh
     if name == "smc":
         return SMCConfig(particles=particles, seed=mh.seed)
-    raise ConfigError(f"unknown sampler {name!r}; choose mh or smc")
+    raise ConfigError(f"unknown sampler {name!r}; choose auto, smc or mh")
 
 
 @app.command()
@@ -76,8 +82,7 @@ def infer(
     burn_in: int = sampler_option("burn_in", SamplerConfig),
     tune_rounds: int = sampler_option("tune_rounds", SamplerConfig),
     tune_steps: int = sampler_option("tune_steps", SamplerConfig),
-    sampler: str = typer.Option("smc", help="smc (tempered SMC over the shape classes, weighed by their evidence) "
-                                            "or mh (multi-chain Metropolis-Hastings; the chain options apply)."),
+    sampler: str = typer.Option("auto", help=SAMPLER_HELP_TEXT),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
     likelihood: str = typer.Option("np3", help="p3 (colour) or np3 (colour + neural)."),
     noise: str = typer.Option("fitted", help=NOISE_HELP),
@@ -96,7 +101,7 @@ def infer(
     observed = load_observation(image)
     config = choose_sampler(sampler, SamplerConfig(chains=chains, steps=steps, burn_in=burn_in,
                                                    tune_rounds=tune_rounds, tune_steps=tune_steps, seed=seed),
-                            particles)
+                            particles, noise, sigma)
     bar, track = phase_progress_bar("sampling")
 
     with bar:
@@ -122,10 +127,10 @@ def evaluate(
     burn_in: int = sampler_option("burn_in", SamplerConfig),
     tune_rounds: int = sampler_option("tune_rounds", SamplerConfig),
     tune_steps: int = sampler_option("tune_steps", SamplerConfig),
-    sampler: str = typer.Option("smc", help="smc (tempered SMC over the shape classes, weighed by their evidence) "
-                                            "or mh (multi-chain Metropolis-Hastings; the chain options apply)."),
+    sampler: str = typer.Option("auto", help=SAMPLER_HELP_TEXT),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
-    noise: str = typer.Option("fitted", help=NOISE_HELP),
+    noise: str = typer.Option("paper", help=NOISE_HELP + " The paper's is the default here: the paper's "
+                                            "distance classifies its broad posteriors better (docs/results.md)."),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
                                                      "dark set)."),
     distance: str = typer.Option("all", help="Distance terms: 'all' (the paper's) or some joined by '+', e.g. "
@@ -145,7 +150,7 @@ def evaluate(
                               dask=dask, distance=DistanceConfig(properties=parse_properties(distance)),
                               sampler=choose_sampler(sampler, SamplerConfig(
                                   chains=chains, steps=steps, burn_in=burn_in, tune_rounds=tune_rounds,
-                                  tune_steps=tune_steps, seed=seed), particles))
+                                  tune_steps=tune_steps, seed=seed), particles, noise, sigma))
     bar, track = phase_progress_bar("posteriors")
 
     with bar:
@@ -172,10 +177,10 @@ def reproduce(
     burn_in: int = sampler_option("burn_in", PRESET),
     tune_rounds: int = sampler_option("tune_rounds", PRESET),
     tune_steps: int = sampler_option("tune_steps", PRESET),
-    sampler_name: str = typer.Option("smc", "--sampler", help="smc (tempered SMC over the shape classes) or mh (the "
-                                                             "evaluation preset; the chain options apply)."),
+    sampler_name: str = typer.Option("auto", "--sampler", help=SAMPLER_HELP_TEXT.replace(
+        "multi-chain Metropolis-Hastings", "the evaluation preset")),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
-    noise: str = typer.Option("fitted", help=NOISE_HELP),
+    noise: str = typer.Option("paper", help=NOISE_HELP + " fitted: runs go to runs/V-fitted."),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma; runs go to "
                                                      "runs/V-sigmaS."),
     distance: str = typer.Option("all", help="Distance terms: 'all' or e.g. colour+class (tables in "
@@ -191,7 +196,8 @@ def reproduce(
     from ..reproduce import reproduce as run_reproduction
 
     sampler = choose_sampler(sampler_name, replace(PRESET, chains=chains, steps=steps, burn_in=burn_in,
-                                                   tune_rounds=tune_rounds, tune_steps=tune_steps), particles)
+                                                   tune_rounds=tune_rounds, tune_steps=tune_steps), particles,
+                             noise, sigma)
     evaluation = EvaluationConfig(likelihoods=tuple(k.strip() for k in likelihoods.split(",") if k.strip()),
                                   sigma=sigma, noise=noise, sampler=sampler, episodes=episodes, jobs=jobs,
                                   distance=DistanceConfig(properties=parse_properties(distance)))
