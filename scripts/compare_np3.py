@@ -49,7 +49,8 @@ def main() -> None:
         same = all(np.array_equal(a.program.samples[n], b.program.samples[n]) for n in a.program.samples)
         identical += same
         for name in ATTRIBUTES:
-            differs[name] += decided["p3"][shot.index][f"{name}_decided"] != decided["np3"][shot.index][f"{name}_decided"]
+            key = f"{name}_decided"
+            differs[name] += decided["p3"][shot.index][key] != decided["np3"][shot.index][key]
         distances.append(float(np.linalg.norm(np.asarray(a.shift) - np.asarray(b.shift))))
     accuracy = {k: {name: float(np.mean([r[f"{name}_decided"] == r[f"{name}_true"] for r in decided[k].values()]))
                     for name in ATTRIBUTES} for k in decided}

@@ -58,7 +58,8 @@ def main() -> None:
     channels = model.channels
     rows = {"torchvision": [], "paper_scale": [], "keras_inputs": []}
     colour = {"fitted": [], "paper_sigma_1": []}
-    likelihoods = {"fitted": default_likelihood(model, "p3", noise="fitted"), "paper_sigma_1": LikelihoodConfig("p3", sigma=1.0)}
+    likelihoods = {"fitted": default_likelihood(model, "p3", noise="fitted"),
+                   "paper_sigma_1": LikelihoodConfig("p3", sigma=1.0)}
     for real, render in zip(observations, renders):
         rows["torchvision"].append(neural_term(real, render, channels))
         rows["paper_scale"].append(neural_term(real, render, channels, PAPER_FEATURE_SCALE))

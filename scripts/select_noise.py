@@ -10,7 +10,7 @@ the share of images whose most probable shape, and whose posterior-mean size
 class, match the labels, the mean log p(true shape), and seconds per image.
 
     python scripts/select_noise.py --dataset data/fsclvr --model data/models/fsclvr [--images 30]
-        [--forms fitted,robust] [--particles 32]
+        [--forms fitted,robust] [--particles 32] [--islands 1]
 """
 from __future__ import annotations
 
@@ -41,6 +41,7 @@ def main() -> None:
     parser.add_argument("--images", type=int, default=30, help="evenly spaced train images")
     parser.add_argument("--forms", default="fitted,robust")
     parser.add_argument("--particles", type=int, default=SMCConfig.particles)
+    parser.add_argument("--islands", type=int, default=SMCConfig.islands, help="independent SMC runs, pooled")
     args = parser.parse_args()
 
     dataset = load_dataset(args.dataset)
@@ -52,8 +53,9 @@ def main() -> None:
     for shot in dataset.split("train"):
         sizes.setdefault(shot.cls.size, []).append(float(np.exp(np.mean(np.log(shot.scale)))))
     sizes = {name: float(np.median(v)) for name, v in sizes.items()}
-    config = SMCConfig(particles=args.particles)
-    report = {"dataset": args.dataset, "images": len(shots), "smc": {"particles": config.particles}}
+    config = SMCConfig(particles=args.particles, islands=args.islands)
+    report = {"dataset": args.dataset, "images": len(shots),
+              "smc": {"particles": config.particles, "islands": config.islands}}
     for form in [f.strip() for f in args.forms.split(",") if f.strip()]:
         core = PosteriorCore(fitted, default_likelihood(fitted, "p3", noise=form), "mitsuba",
                              *dataset.resolution)

@@ -319,12 +319,12 @@ def test_systematic_resampling_follows_the_weights():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kinds", [False, True])
-def test_smc_runs_every_hypothesis_and_keeps_their_evidence(fitted, tmp_path, kinds):
+@pytest.mark.parametrize("kinds, islands", [(False, 1), (True, 1), (False, 2)])
+def test_smc_runs_every_hypothesis_and_keeps_their_evidence(fitted, tmp_path, kinds, islands):
     """On an image the Phong model renders, the SMC tempers every hypothesis (shape classes, or shape x
-    material kind) to lambda = 1 (no forced jump), its weights form a distribution over the hypotheses,
-    the posterior's classes follow the winning hypotheses, and the posterior file keeps each
-    hypothesis's log evidence and weight. (Which hypothesis wins is not asserted: with 8 particles
+    material kind; one run each, or islands pooled) to lambda = 1 (no forced jump), its weights form a
+    distribution over the hypotheses, the posterior's classes follow the winning hypotheses, and the
+    posterior file keeps each hypothesis's log evidence and weight. (Which hypothesis wins is not asserted: with 8 particles
     the evidence is not yet reliable; scripts/bench_infer.py measures it.)"""
     import json
 
@@ -336,7 +336,7 @@ def test_smc_runs_every_hypothesis_and_keeps_their_evidence(fitted, tmp_path, ki
     # a likelihood as sharp as the fitted ones (sigma 0.03, a power for correlated pixels)
     likelihood = LikelihoodConfig("p3", sigma=0.03, power=0.05, shadows=True)
     posterior = infer_image(fitted, observed, likelihood, SMCConfig(particles=8, mcmc_steps=1, final_steps=1,
-                                                                    draws=200, kinds=kinds))
+                                                                    draws=200, kinds=kinds, islands=islands))
     attrs = posterior.idata.posterior.attrs
     hypotheses = json.loads(attrs["hypotheses"])
     assert list(hypotheses) == list(HYPOTHESES if kinds else SHAPES)

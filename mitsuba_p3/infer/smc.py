@@ -34,6 +34,12 @@ above the prior's threshold (``shiny`` in the statistics). ``kinds=True`` makes
 shape x material kind six hypotheses of their own instead (twice the cost; their
 specular priors are the mixture's components).
 
+**Islands.** ``islands=k`` runs k independent SMCs per hypothesis, all in the same
+batched renders (each island a row of its own). Each gives an unbiased estimate
+of Z_h, so their mean is one, with k times less variance; a failed island (one
+that missed the object's pose) underestimates Z_h and weighs little. The draws
+come from each island in proportion to its estimate.
+
 Within a hypothesis the class logits are fixed (they play no role); the rest of
 the prior is the model's. The result is a :class:`~mitsuba_p3.infer.mcmc.SamplerRun`
 of draws from the mixture over hypotheses, with each hypothesis's log evidence,
@@ -65,6 +71,7 @@ class SMCConfig:
     final_steps: int = 6           # extra sweeps at lambda = 1, to spread the resampled particles again
     footprint: bool = True         # half of the first step's draws placed from the image's footprint
     kinds: bool = False            # material kinds as hypotheses of their own (else within each shape)
+    islands: int = 1               # independent SMC runs per hypothesis, their evidence pooled
     target_ess: float = 0.5        # of the incremental weights, as a share of the particles
     max_temperatures: int = 100    # a run that needs more jumps to lambda = 1 (statistics: 'forced')
     draws: int = 400               # posterior draws returned (resampled from the mixture)
@@ -73,7 +80,8 @@ class SMCConfig:
     def __post_init__(self):
         from ..errors import ConfigError, check_counts
 
-        check_counts(self, {"particles": 4, "oversample": 1, "mcmc_steps": 1, "material_every": 1, "final_steps": 0, "max_temperatures": 1, "draws": 4, "seed": 0}, "smc ")
+        check_counts(self, {"particles": 4, "oversample": 1, "mcmc_steps": 1, "material_every": 1, "final_steps": 0,
+                            "islands": 1, "max_temperatures": 1, "draws": 4, "seed": 0}, "smc ")
         if not 0.0 < self.target_ess < 1.0:
             raise ConfigError(f"smc target-ess must lie in (0, 1); got {self.target_ess}")
 
@@ -95,10 +103,15 @@ class Hypotheses(NamedTuple):
     specular_sd: np.ndarray
 
 
-def hypotheses_of(prior, kinds: bool) -> Hypotheses:
+def hypotheses_of(prior, kinds: bool, islands: int = 1) -> Hypotheses:
     """Shape classes (``kinds`` False: the material kind is left to the material moves, and its
     posterior is the particles' share on each side of the specular threshold), or shape x material
-    kind (True: the matte and shiny components of the specular prior, each a hypothesis)."""
+    kind (True: the matte and shiny components of the specular prior, each a hypothesis); each
+    repeated ``islands`` times, one row per independent run (island i of hypothesis h is row
+    i * H + h)."""
+    if islands > 1:
+        one = hypotheses_of(prior, kinds)
+        return Hypotheses(one.names * islands, *(np.tile(a, islands) for a in one[1:]))
     log_class = np.log(np.asarray(prior.config.class_probabilities, np.float64))
     if not kinds:
         nan = np.full(len(SHAPES), np.nan)
@@ -133,7 +146,8 @@ def hypothesis_log_prior(prior, hypotheses: Hypotheses):
     from jax.scipy.stats import norm
 
     spec = SLICES["specular"].start
-    means, sds = jnp.asarray(np.nan_to_num(hypotheses.specular_mean)), jnp.asarray(np.nan_to_num(hypotheses.specular_sd, nan=1.0))
+    means = jnp.asarray(np.nan_to_num(hypotheses.specular_mean))
+    sds = jnp.asarray(np.nan_to_num(hypotheses.specular_sd, nan=1.0))
     own = jnp.asarray(np.isfinite(hypotheses.specular_mean))
 
     def log_prior(z, h):
@@ -202,16 +216,17 @@ def footprint_start(core, observation, draws: np.ndarray, rng: np.random.Generat
 
 
 @functools.lru_cache(maxsize=4)
-def _kernels(core, walk_mask: tuple, kinds: bool):
+def _kernels(core, walk_mask: tuple, kinds: bool, islands: int):
     """Jitted (score, walk, material) for one :class:`PosteriorCore`: scores of all particles, and the two
     moves of all particles at per-hypothesis temperatures."""
     import jax
     import jax.numpy as jnp
     from blackjax.mcmc.random_walk import RWState
 
-    log_prior = hypothesis_log_prior(core.prior, hypotheses_of(core.prior, kinds))
+    space = hypotheses_of(core.prior, kinds, islands)
+    log_prior = hypothesis_log_prior(core.prior, space)
     mask = jnp.asarray(walk_mask, jnp.float32)
-    hypotheses = len(hypotheses_of(core.prior, kinds).names)
+    hypotheses = len(space.names)
 
     def loglik_all(z, observation):                               # (H, N, d) -> (H, N)
         flat = z.reshape(-1, z.shape[-1])
@@ -277,8 +292,8 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
     mask = np.ones(DIMENSION, np.float32)
     for name in ("kappa", "colour", "ambient", "diffuse", "specular"):
         mask[SLICES[name]] = 0.0          # fixed by the hypothesis, or the material update's business
-    score, walk, material = _kernels(core, tuple(mask.tolist()), config.kinds)
-    space = hypotheses_of(core.prior, config.kinds)
+    score, walk, material = _kernels(core, tuple(mask.tolist()), config.kinds, config.islands)
+    space = hypotheses_of(core.prior, config.kinds, config.islands)
     hypotheses, n = len(space.names), config.particles
     # the first reweighting starts from oversample x N prior draws and keeps N: a valid SMC step
     # (its evidence increment averages over all draws) that finds the object with few particles
@@ -335,19 +350,26 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
             progress("smc", int(100 * tempering.min()), 100)
         if np.all(tempering >= 1.0):
             break
-    log_posterior = space.log_prior + log_evidence
+    # islands: the mean of their unbiased evidence estimates is one; a row's share of its hypothesis is
+    # its own estimate's share of the sum
+    base = len(space.names) // config.islands
+    rows = log_evidence.reshape(config.islands, base)
+    pooled = np.logaddexp.reduce(rows, axis=0) - np.log(config.islands)
+    log_posterior = space.log_prior[:base] + pooled
     weights = np.exp(log_posterior - np.logaddexp.reduce(log_posterior))
-    # draws: hypotheses by their posterior weight, particles uniformly (equal weights after resampling)
+    row_weights = (np.exp(rows - np.logaddexp.reduce(rows, axis=0)) * weights).reshape(-1)
+    # draws: rows by their posterior weight, particles uniformly (equal weights after resampling)
     chains = 4
     per_chain = max(1, config.draws // chains)
-    chosen_h = rng.choice(hypotheses, size=chains * per_chain, p=weights)
+    chosen_h = rng.choice(hypotheses, size=chains * per_chain, p=row_weights / row_weights.sum())
     chosen_n = rng.integers(config.particles, size=chains * per_chain)
     positions = z[chosen_h, chosen_n].reshape(chains, per_chain, -1)
     logdensity = (logprior + loglik)[chosen_h, chosen_n].reshape(chains, per_chain)
-    shiny = z[..., SLICES["specular"].start] > core.prior.specular_threshold()          # (H, N)
-    statistics = {"hypotheses": {name: {"log_evidence": float(log_evidence[h]), "weight": float(weights[h]),
-                                        "shiny": float(shiny[h].mean())}
-                                 for h, name in enumerate(space.names)},
+    shiny = (z[..., SLICES["specular"].start] > core.prior.specular_threshold()).mean(axis=1)    # per row
+    shiny = np.sum(shiny.reshape(config.islands, base) * np.exp(rows - np.logaddexp.reduce(rows, axis=0)), axis=0)
+    statistics = {"hypotheses": {name: {"log_evidence": float(pooled[h]), "weight": float(weights[h]),
+                                        "shiny": float(shiny[h])}
+                                 for h, name in enumerate(space.names[:base])},
                   "temperatures": steps, "forced": bool(steps == config.max_temperatures),
                   "walk_acceptance": float(np.mean(acceptance_history[-1])),
                   "seconds": time.perf_counter() - start}
