@@ -27,7 +27,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     os.close(handle)
     try:
         yield Path(temporary)
-        os.chmod(temporary, 0o666 & ~_umask())      # mkstemp makes 0600; give the file the usual mode
+        os.chmod(temporary, 0o666 & ~_UMASK)      # mkstemp makes 0600; give the file the usual mode
         os.replace(temporary, path)
     finally:
         if os.path.exists(temporary):
@@ -41,10 +41,14 @@ def atomic_open(path: str | Path) -> Iterator:
         yield f
 
 
-def _umask() -> int:
+def _read_umask() -> int:
+    """The process's umask (reading it means setting it: done once, at import, not per write)."""
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+_UMASK = _read_umask()
 
 
 def atomic_write(path: str | Path, data: bytes | str) -> Path:

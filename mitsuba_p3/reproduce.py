@@ -34,6 +34,7 @@ from .benchmarks.protocol import VARIANTS
 from .errors import ConfigError
 from .evaluate import PRESET, SETTINGS, EvaluationConfig, evaluate, load_baselines, markdown_table, setting_name
 from .files import atomic_json, atomic_open, atomic_write
+from .infer.likelihood import NOISES
 
 PAPER_ACCURACY = {  # shared/PAPER_NOTES.md: 5w1s / 5w5s / 10w1s / 10w5s (their data sets)
     "MAML 56": {"fsclvr": "77.0/87.5/62.8/69.8", "room": "77.9/79.2/47.2/61.5", "dark": "79.6/86.2/60.4/62.8",
@@ -99,7 +100,7 @@ def reproduce(data: str | Path, out: str | Path, config: ReproduceConfig | None 
         folder, model = prepare(data, variant, progress)
         prepared = (time.perf_counter() - start) / 60
         start = time.perf_counter()
-        noise = "fitted" if evaluation.noise == "fitted" and evaluation.sigma is None else evaluation.sigma
+        noise = evaluation.noise if evaluation.noise != "paper" and evaluation.sigma is None else evaluation.sigma
         evaluate(folder, model, out / "runs" / run_name(variant, noise), evaluation,
                  progress=(lambda phase, d, t: progress(f"{variant}: {phase}", d, t)) if progress else None)
         minutes[variant] = (time.perf_counter() - start) / 60
@@ -120,18 +121,23 @@ def cells(result: dict) -> str:
     return "/".join(f"{100 * result['accuracy'][n]['mean']:.1f}" if n in result["accuracy"] else "-" for n in names)
 
 
+# the model's noise models, each with its own run folder and table rows (the paper's is the plain name)
+FITTED_NOISES = tuple(n for n in NOISES if n != "paper")
+
+
 def run_name(variant: str, sigma: float | str | None) -> str:
-    """The run folder of a benchmark: ``V`` with the paper's likelihood (``sigma`` None), ``V-fitted`` with
-    the model's fitted noise model (``"fitted"``), ``V-sigmaS`` with the paper's form at sigma S (a number)."""
+    """The run folder of a benchmark: ``V`` with the paper's likelihood (``sigma`` None), ``V-fitted`` /
+    ``V-robust`` with the model's noise model of that name, ``V-sigmaS`` with the paper's form at sigma S."""
     if sigma is None:
         return variant
-    return f"{variant}-fitted" if sigma == "fitted" else f"{variant}-sigma{sigma:g}"
+    return f"{variant}-{sigma}" if sigma in FITTED_NOISES else f"{variant}-sigma{sigma:g}"
 
 
 def parse_run_name(name: str) -> tuple[str, float | str | None] | None:
     """(benchmark, sigma) of a run folder name (see :func:`run_name`), or None for a folder it did not make."""
-    if name.endswith("-fitted") and name[:-7] in COLUMNS:
-        return name[:-7], "fitted"
+    variant, _, noise = name.rpartition("-")
+    if noise in FITTED_NOISES and variant in COLUMNS:
+        return variant, noise
     variant, _, rest = name.partition("-sigma")
     if variant not in COLUMNS:
         return None
@@ -143,13 +149,15 @@ def parse_run_name(name: str) -> tuple[str, float | str | None] | None:
 
 def label(likelihood: str, sigma: float | str | None, distance: str | None = None) -> str:
     """A table row's name: ``P3``, ``P3 (fitted noise)``, ``P3 (sigma 0.3)``, ``NP3 (colour+class)``, ..."""
-    noise = [] if sigma is None else ["fitted noise"] if sigma == "fitted" else [f"sigma {sigma:g}"]
+    noise = [] if sigma is None else [f"{sigma} noise"] if sigma in FITTED_NOISES else [f"sigma {sigma:g}"]
     notes = noise + ([] if distance is None else [distance])
     return likelihood.upper() + (f" ({', '.join(notes)})" if notes else "")
 
 
 def _noise_order(sigma) -> tuple:
-    return (0, 0.0) if sigma is None else (1, 0.0) if sigma == "fitted" else (2, float(sigma))
+    if sigma in FITTED_NOISES:
+        return (1, float(FITTED_NOISES.index(sigma)))
+    return (0, 0.0) if sigma is None else (2, float(sigma))
 
 
 def collect(out: Path) -> dict:

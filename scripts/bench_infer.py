@@ -12,7 +12,7 @@ run resumes), then prints JSON, the settings side by side:
   seed's run as one chain; the median and the 90th percentile over images;
 - ``log_evidence_spread``: for samplers that estimate an evidence (none of the MH settings).
 
-Settings: ``smc`` is the default of ``infer`` and ``evaluate`` (tempered SMC over the shape classes,
+Settings: ``smc`` is the default of ``infer`` (tempered SMC over the shape classes,
 the fitted Gaussian noise model with hard shadows); ``smc-robust`` the same with the fitted
 inlier/outlier mixture; ``mh-paper`` the MH evaluation preset with the paper's likelihood
 (sigma 1, no shadows), the project's old default; ``mh-fitted`` that sampler with the fitted

@@ -103,13 +103,12 @@ def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str,
 
 
 def _evidence(posterior) -> dict:
-    """Per hypothesis log evidence and weight, when the sampler estimated them (SMC)."""
+    """Per hypothesis log evidence, when the sampler estimated it (SMC)."""
     hypotheses = posterior.idata.posterior.attrs.get("hypotheses")
     if hypotheses is None:
         return {}
     values = json.loads(hypotheses) if isinstance(hypotheses, str) else hypotheses
-    return {"log_evidence": np.array([v["log_evidence"] for v in values.values()], np.float64),
-            "hypothesis_weights": np.array([v["weight"] for v in values.values()], np.float64)}
+    return {"log_evidence": np.array([v["log_evidence"] for v in values.values()], np.float64)}
 
 
 @dataclass

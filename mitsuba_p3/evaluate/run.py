@@ -7,6 +7,8 @@ from typing import Callable
 
 from ..benchmarks.dataset import load_dataset
 from ..files import atomic_json, atomic_open
+from ..fit.attributes import rules_for
+from ..fit.model import FittedModel
 from .config import EvaluationConfig
 from .jobs import CachedPosterior, check_run, compute_posteriors, posterior_path
 from .metrics import (accuracy_of, attribute_recovery, classify_episodes, feasible_settings, pose_errors, pose_summary,
@@ -28,9 +30,6 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
                        (lambda done, total: progress("posteriors", done, total)) if progress else None)
     fewest = min(len(dataset.shots_of(c)) for c in dataset.classes("test"))
     settings = feasible_settings(len(dataset.classes("test")), fewest, config.queries_per_class)
-    from ..fit.attributes import rules_for
-    from ..fit.model import FittedModel
-
     rules = rules_for(FittedModel(model_dir), dataset)
     results, predictions, attributes = {}, [], []
     for likelihood in config.likelihoods:

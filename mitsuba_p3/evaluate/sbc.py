@@ -124,6 +124,5 @@ def run_sbc(core, sample, images: int, draws: int, seed: int = 0, cache=None, pr
             atomic_npz(cache, draws=draws, seed=seed, **{k: np.array(v) for k, v in done.items()})
         if progress:
             progress(i + 1, images)
-    count = images
-    return SBCResult(np.array(done["ranks"][:count]), draws, np.array(done["probabilities"][:count]),
-                     np.array(done["truths"][:count]))
+    return SBCResult(np.array(done["ranks"][:images]), draws, np.array(done["probabilities"][:images]),
+                     np.array(done["truths"][:images]))

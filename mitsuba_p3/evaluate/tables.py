@@ -85,7 +85,7 @@ def attribute_table(results: dict) -> str:
     def cell(summary, key):
         if key not in summary:
             return "-"
-        return f"{100 * summary[key]:.1f}" if key.endswith("accuracy") or key.endswith("large") else f"{summary[key]:.3f}"
+        return f"{100 * summary[key]:.1f}" if "accuracy" in key else f"{summary[key]:.3f}"
 
     rows = [[model.upper()] + [cell(r.get("attributes", {}), key) for key, _ in ATTRIBUTE_COLUMNS]
             for model, r in results.items()]

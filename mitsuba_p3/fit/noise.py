@@ -21,6 +21,7 @@ is nearly always explained. A single eps let the posterior call part of a metal
 sphere "outliers" and explain the rest with a smaller sphere; with two, a pixel
 the hypothesis leaves as floor but the image shows as object costs the price
 of a floor outlier, which is high.
+
 sigma and eps are fitted by EM (Dempster et al. 1977): the E-step gives each
 pixel's inlier responsibility w, the M-step sets eps to the mean of 1 - w and
 sigma^2 to the w-weighted mean squared channel residual (the exact M-step of an
@@ -158,7 +159,7 @@ def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, 
                        power=1.0 / area, shadows=shadows, gaussian_sigma=float(np.sqrt(np.mean(residuals ** 2))),
                        footprint=float(np.quantile(floor, 0.999)) if floor.size else None)
     figures = {"pixels": int(np.prod(residuals.shape[:-1])), "object_pixels": int(regions.sum()),
-               "residual_rms": float(np.sqrt(np.mean(residuals ** 2))),
+               "residual_rms": model.gaussian_sigma,
                "em_iterations": iterations, "correlation_area_pixels": area,
                "effective_sigma": model.gaussian_sigma / np.sqrt(model.power),
                "effective_sigma_mixture": sigma / np.sqrt(model.power)}

@@ -11,6 +11,7 @@ Mitsuba launch -- or, with ``renderer="jax"``, from the pure-JAX tracer.
 """
 from __future__ import annotations
 
+import functools
 from typing import Callable
 
 import numpy as np
@@ -141,6 +142,14 @@ class PosteriorCore:
 
     def observe(self, observed: np.ndarray) -> dict:
         return observe(observed, self.config, self.channels, self.empty)
+
+    @functools.cached_property
+    def camera_rays(self) -> tuple[np.ndarray, np.ndarray]:
+        """The camera's origin (3,) and per-pixel unit rays (H*W, 3) at this core's size (the SMC's
+        footprint proposal follows them); computed on first use, once per core."""
+        from ..render.jax_tracer import camera_rays
+
+        return camera_rays(self.fitted.scene().camera, self.renderer.height, self.renderer.width)
 
     def render(self, z):
         """Image(s) of unconstrained position(s) z (JAX)."""

@@ -188,14 +188,12 @@ def footprint_start(core, observation, draws: np.ndarray, rng: np.random.Generat
     """Place every other first-step draw (H, M, 15, in place) from the image's footprint
     (:mod:`mitsuba_p3.infer.footprint`) and return each draw's log importance weight (H, M),
     log prior - log (defensive mixture), for the position; zeros when there is no footprint."""
-    from ..render.jax_tracer import camera_rays
     from .footprint import DEFENSIVE_WEIGHT, FootprintProposal, footprint_mask, shift_log_prior
 
     threshold = core.footprint_threshold
     if threshold is None:
         return np.zeros(draws.shape[:2])
-    renderer = core.renderer
-    origin, directions = camera_rays(core.fitted.scene().camera, renderer.height, renderer.width)
+    origin, directions = core.camera_rays
     mask = footprint_mask(observation["image"], core.empty, threshold)
     bound = core.prior.config.shift_bound
     proposal = FootprintProposal.of(mask, origin, directions, bound, rng)
