@@ -21,6 +21,19 @@ measures it). The class term is the exact KL of the categorical distributions,
 whose frequencies are smoothed by ``class_smoothing`` so that a class absent
 from one posterior does not make the distance infinite.
 
+**The concept's spread.** The program of one image is its posterior: how
+sure the sampler is of *this* object. A concept is broader: two images of one
+class differ by more than either posterior's width (the light falls otherwise,
+the sampler errs), and once the likelihood is sharp, the KL between two such
+posteriors measures that difference in units of their tiny widths, so weakly
+identified properties (shininess, k_a) swamp the colour. A
+:class:`ConceptSpread`, fitted on *train* classes (:func:`fit_spread`), is the
+remedy of a hierarchical model: each property's kernels are widened by the
+pooled within-class covariance of the train posteriors' means, and the class
+distribution is mixed with a uniform one at the sampler's error rate on train
+shapes, so a program is the predictive density of another instance of its
+concept. Without a spread the programs are the paper's.
+
 Every density of the project speaks one vocabulary: ``log_prob(x)`` and
 ``sample(rng, n)`` (:class:`GaussianKde`, :class:`ProtoProgram`, and the prior's
 :class:`~mitsuba_p3.fit.priors.GMM` and :class:`~mitsuba_p3.fit.priors.Prior`).
@@ -47,12 +60,18 @@ class DistanceConfig:
     class_smoothing: float = 0.01  # pseudo-count added to each class frequency
     max_points: int = 500        # posterior samples kept per KDE (evenly thinned): bounds the cost
     properties: tuple = PROPERTIES  # the terms of the distance (all of them in the paper; fewer for ablations)
+    # train images per train class whose posteriors fit the programs' ConceptSpread (0: the paper's programs)
+    spread_shots: int = 3
 
     def __post_init__(self):
         unknown = set(self.properties) - set(PROPERTIES)
         if unknown or not self.properties:
             raise MitsubaP3Error(f"distance properties must be a non-empty subset of {PROPERTIES}; "
                                  f"got {tuple(self.properties)}")
+        if not isinstance(self.spread_shots, int) or isinstance(self.spread_shots, bool) or self.spread_shots < 0 \
+                or self.spread_shots == 1:
+            raise MitsubaP3Error(f"spread_shots must be 0 (no concept spread) or 2 or more train images per class; "
+                                 f"got {self.spread_shots!r}")
 
     @property
     def continuous(self) -> tuple:
@@ -78,19 +97,23 @@ def _log_kernel_sum():
 
 
 class GaussianKde:
-    """A Gaussian KDE with Scott's bandwidth, the density of ``scipy.stats.gaussian_kde``.
+    """A Gaussian KDE with Scott's bandwidth, the density of ``scipy.stats.gaussian_kde``;
+    with ``spread`` (a covariance), each kernel is widened by it (the density convolved with
+    N(0, spread)).
 
     Its own class for speed: the density is one fused, jitted kernel sum in
     whitened coordinates (measured 3-10x faster than the same sum in numpy at the
     evaluation's sizes), so scoring an episode takes a fraction of a second.
     """
 
-    def __init__(self, points: np.ndarray):
+    def __init__(self, points: np.ndarray, spread: np.ndarray | None = None):
         points = np.asarray(points, np.float64)
         n, d = points.shape
         self.points = points
         factor = n ** (-1.0 / (d + 4))                      # Scott's rule
         covariance = np.atleast_2d(np.cov(points, rowvar=False)) * factor ** 2
+        if spread is not None:                               # a concept's spread around each draw
+            covariance = covariance + np.atleast_2d(spread)
         # a property that never varied (a fixed prior) still gets a proper density
         covariance += np.eye(d) * max(1e-12, 1e-9 * np.trace(covariance) / d)
         self.cholesky = np.linalg.cholesky(covariance)
@@ -110,13 +133,71 @@ class GaussianKde:
         return centres + rng.standard_normal((n, self.points.shape[1])) @ self.cholesky.T
 
 
+@dataclass(frozen=True)
+class ConceptSpread:
+    """How far apart two instances of one concept are, as the sampler sees them (fitted on train classes).
+
+    ``covariance``: per continuous property, the pooled within-class covariance of the
+    posterior means; ``class_error``: the mean posterior probability of a wrong shape on the
+    train images. ``images`` and ``classes`` say what it was fitted on.
+    """
+
+    covariance: dict
+    class_error: float
+    images: int = 0
+    classes: int = 0
+
+    def to_json(self) -> dict:
+        return {"covariance": {k: np.asarray(v).tolist() for k, v in self.covariance.items()},
+                "class_error": self.class_error, "images": self.images, "classes": self.classes}
+
+    @classmethod
+    def from_json(cls, record: dict) -> "ConceptSpread":
+        return cls({k: np.atleast_2d(np.asarray(v, np.float64)) for k, v in record["covariance"].items()},
+                   float(record["class_error"]), int(record.get("images", 0)), int(record.get("classes", 0)))
+
+    def class_mixture(self, probabilities: np.ndarray) -> np.ndarray:
+        """Mix a class distribution with the uniform one so that a certain class keeps
+        probability 1 - class_error (each other class class_error / (K - 1))."""
+        k = len(probabilities)
+        weight = min(1.0, self.class_error * k / (k - 1))
+        return (1.0 - weight) * probabilities + weight / k
+
+
+def fit_spread(programs: dict[str, list["ProtoProgram"]], shapes: dict[str, int | None]) -> ConceptSpread:
+    """The :class:`ConceptSpread` of train classes: ``programs`` maps a class to its images' programs
+    (at least two for some class), ``shapes`` a class to its true shape's index (None for a shape
+    outside :data:`~mitsuba_p3.shapes.SHAPES`, which does not count towards ``class_error``)."""
+    groups = [group for group in programs.values() if group]
+    images = sum(len(group) for group in groups)
+    if images - len(groups) < 1:
+        raise MitsubaP3Error("fitting a concept spread needs two or more images of at least one class")
+    covariance = {}
+    for name in CONTINUOUS:
+        scatter = 0.0
+        for group in groups:
+            means = np.stack([p.samples[name].mean(axis=0) for p in group])
+            centred = means - means.mean(axis=0)
+            scatter = scatter + centred.T @ centred
+        covariance[name] = np.atleast_2d(scatter / (images - len(groups)))
+    wrong = [1.0 - p.class_probabilities()[shapes[name]]
+             for name, group in programs.items() if shapes.get(name) is not None for p in group]
+    return ConceptSpread(covariance, float(np.mean(wrong)) if wrong else 0.0, images, len(groups))
+
+
 @dataclass
 class ProtoProgram:
-    """Per-property sample sets of a concept; the KDEs are built on first use."""
+    """Per-property sample sets of a concept; the KDEs are built on first use. With a
+    :class:`ConceptSpread`, the kernels and class distribution are widened by it."""
 
     samples: dict                         # property -> (n, d) array; "class" -> (n,) integer classes
     max_points: int = DistanceConfig.max_points
+    spread: ConceptSpread | None = None
     _kdes: dict = field(default_factory=dict, repr=False)
+
+    def with_spread(self, spread: ConceptSpread | None) -> "ProtoProgram":
+        """The same samples under another concept spread (None: the paper's program)."""
+        return ProtoProgram(self.samples, self.max_points, spread)
 
     @classmethod
     def from_posterior(cls, posterior, max_points: int = DistanceConfig.max_points) -> "ProtoProgram":
@@ -133,7 +214,7 @@ class ProtoProgram:
         if not programs:
             raise MitsubaP3Error("cannot merge an empty list of protoprograms")
         return cls({name: np.concatenate([p.samples[name] for p in programs]) for name in PROPERTIES},
-                   programs[0].max_points)
+                   programs[0].max_points, programs[0].spread)
 
     def kde(self, name: str) -> GaussianKde:
         """The Gaussian KDE of a continuous property (Scott's bandwidth), on at most ``max_points``."""
@@ -141,12 +222,13 @@ class ProtoProgram:
             points = self.samples[name]
             if len(points) > self.max_points:
                 points = points[np.linspace(0, len(points) - 1, self.max_points).astype(int)]
-            self._kdes[name] = GaussianKde(points)
+            self._kdes[name] = GaussianKde(points, self.spread.covariance[name] if self.spread else None)
         return self._kdes[name]
 
     def class_probabilities(self, smoothing: float = DistanceConfig.class_smoothing) -> np.ndarray:
         counts = np.bincount(self.samples["class"], minlength=len(SHAPES)).astype(float) + smoothing
-        return counts / counts.sum()
+        probabilities = counts / counts.sum()
+        return self.spread.class_mixture(probabilities) if self.spread else probabilities
 
     def log_prob(self, values: dict) -> np.ndarray:
         """log density of the joint (independent properties) at ``values``: property -> (n, d) / (n,)."""

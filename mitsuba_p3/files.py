@@ -1,10 +1,17 @@
-"""Atomic file writes: a killed run never leaves half a file under a final name.
+"""Atomic file writes, and output folders that are the command's own.
+
+A killed run never leaves half a file under a final name.
 
 Every writer in the project goes through :func:`atomic_path`: the content is
 written to a hidden temporary file in the target's folder (same file system,
 same suffix, so libraries that pick a format from the suffix still do), then
 renamed over the target in one step (``os.replace``). On any error the
 temporary file is removed and the target is left as it was.
+
+:func:`claim_output_folder` is the one rule for a command's output folder: it
+is created, or it is empty, or it holds that command's own earlier output
+(resumed or extended). A data set, a fitted model or anything else is refused
+before any work starts, so no command overwrites what it did not make.
 """
 from __future__ import annotations
 
@@ -16,6 +23,33 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
+
+from .errors import MitsubaP3Error
+
+# what marks a folder as a data set or a fitted model: never an output folder of another command
+FOLDER_KINDS = {"labels.json": "a benchmark data set", "model.json": "a fitted model", "run.json": "an evaluation run",
+                "posterior.nc": "a posterior (mitsuba-p3 infer)"}
+
+
+def claim_output_folder(path: str | Path, own: str | tuple, command: str) -> Path:
+    """Create ``path`` for ``command``'s output, or accept it if it is empty or holds one of ``own``
+    (the files that command writes, e.g. ``model.json``); refuse a file, another kind of folder, or a
+    folder of other files, with one line naming the fix. Nothing is written on refusal."""
+    owns = (own,) if isinstance(own, str) else tuple(own)
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise MitsubaP3Error(f"{path} is a file; {command} writes a folder: give a new folder name")
+    if path.is_dir():
+        entries = [e.name for e in path.iterdir()]
+        for marker, kind in FOLDER_KINDS.items():
+            if marker not in owns and marker in entries:
+                raise MitsubaP3Error(f"{path} holds {kind} ({marker}); {command} will not write into it: "
+                                     "give another --out folder")
+        if entries and not set(entries) & set(owns):
+            raise MitsubaP3Error(f"{path} is not empty and holds no {owns[0]}: it is not {command}'s output; "
+                                 "give a new or empty folder")
+    path.mkdir(parents=True, exist_ok=True)
+    return path
 
 
 @contextmanager

@@ -26,7 +26,14 @@ def read_png(path: str | Path) -> np.ndarray:
         raise ImageError(f"{path}: no such image file")
     try:
         with Image.open(path) as im:
-            im.load()
+            im.load()                                   # the first frame of an animation
+            # colours, not the file's encoding: palette entries (PNG mode P, GIF), CMYK or YCbCr JPEGs
+            if im.mode in ("P", "PA"):
+                im = im.convert("RGBA")
+            elif im.mode in ("CMYK", "YCbCr", "LAB", "HSV"):
+                im = im.convert("RGB")
+            elif im.mode == "1":
+                im = im.convert("L")
             mode = im.mode
             arr = np.asarray(im)
     except (UnidentifiedImageError, OSError) as exc:
@@ -57,6 +64,43 @@ def read_png(path: str | Path) -> np.ndarray:
 def to_uint8(image: np.ndarray) -> np.ndarray:
     """float [0, 1] -> uint8, rounding to nearest."""
     return (np.clip(np.asarray(image, dtype=np.float32), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+# what an output image's suffix asks for (Pillow format names)
+IMAGE_FORMATS = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}
+
+
+def check_image_output(path: str | Path) -> Path:
+    """Refuse, before any work, an output image path that could not be written as asked: a folder
+    (or a name ending in a slash), a parent that is a file, a suffix other than .png/.jpg/.jpeg."""
+    text = str(path)
+    path = Path(path)
+    if text.endswith(("/", "\\")) or path.is_dir():
+        raise ImageError(f"{text} is a folder; give an image file name such as {path / 'image.png'}")
+    suffix = path.suffix.lower()
+    if suffix not in IMAGE_FORMATS:
+        raise ImageError(f"{path}: cannot write {suffix or 'a file without a suffix'}; "
+                         f"name it {path.with_suffix('.png').name} (or .jpg)")
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise ImageError(f"{path}: {parent} is a file, not a folder")
+            break
+    return path
+
+
+def write_image(path: str | Path, image: np.ndarray) -> Path:
+    """Write a float (H, W, 3) image in [0, 1] as its suffix says: 8-bit PNG or JPEG (quality 95)."""
+    from PIL import Image
+
+    path = check_image_output(path)
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise ImageError(f"{path}: can only write (H, W, 3) images, got shape {image.shape}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as temporary:
+        Image.fromarray(to_uint8(image)).save(temporary, format=IMAGE_FORMATS[path.suffix.lower()], quality=95)
+    return path
 
 
 def write_png(path: str | Path, image: np.ndarray) -> Path:

@@ -162,11 +162,13 @@ def _noise_order(sigma) -> tuple:
 
 def collect(out: Path) -> dict:
     """Every evaluated run under ``out/runs``: {(benchmark, sigma, distance): {likelihood: result}}, where
-    distance is None for the paper's and e.g. ``colour+class`` for tables in ``runs/V/distance-colour+class``."""
+    distance is None for the paper's and e.g. ``colour+class`` for tables in ``runs/V/distance-colour+class``
+    (``spread0`` for the paper's distance over programs without a concept spread)."""
     found = {}
     for run in sorted((out / "runs").glob("*/")):
         key = parse_run_name(run.name)
-        for path in [run / "results.json", *sorted(run.glob("distance-*/results.json"))] if key else []:
+        for path in [run / "results.json", *sorted(run.glob("distance-*/results.json")),
+                     *sorted(run.glob("spread*/results.json"))] if key else []:
             if path.is_file():
                 distance = None if path.parent == run else path.parent.name.removeprefix("distance-")
                 found[key + (distance,)] = json.loads(path.read_text())["results"]

@@ -6,7 +6,7 @@ property subsets: all of them (the paper's distance), all but one, and one
 alone. Prints a markdown table of accuracies on the run's own episodes.
 
     python scripts/ablate_distance.py data/fsclvr results/runs/fsclvr [--likelihood p3] [--episodes 100]
-        [--subsets colour+class,colour]
+        [--subsets colour+class,colour] [--spread-shots 0]
 """
 from __future__ import annotations
 
@@ -21,6 +21,7 @@ from mitsuba_p3.concepts import PROPERTIES, DistanceConfig, parse_properties
 from mitsuba_p3.errors import MitsubaP3Error
 from mitsuba_p3.evaluate import (CachedPosterior, EvaluationConfig, classify_episodes, feasible_settings,
                                  markdown_table, posterior_path, setting_name)
+from mitsuba_p3.evaluate.run import run_spread
 
 
 def main() -> None:
@@ -31,11 +32,20 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=100)
     parser.add_argument("--subsets", default=None,
                         help="only these subsets, e.g. colour+class,colour (default: all, all but one, one alone)")
+    parser.add_argument("--spread-shots", type=int, default=DistanceConfig.spread_shots,
+                        help="train images per class that fit the concept spread (0: the paper's programs)")
     args = parser.parse_args()
     dataset = load_dataset(args.dataset)
-    distance = DistanceConfig()
-    cached = {shot.index: CachedPosterior.load(posterior_path(args.run, args.likelihood, shot.index),
-                                               distance.max_points) for shot in dataset.split("test")}
+    try:
+        distance = DistanceConfig(spread_shots=args.spread_shots)
+        spread = run_spread(dataset, args.run, args.likelihood, EvaluationConfig(distance=distance))
+    except (MitsubaP3Error, FileNotFoundError) as error:
+        parser.error(f"{error} (the run needs posteriors of {args.spread_shots} train images per class, "
+                     "or --spread-shots 0)")
+    cached = {}
+    for shot in dataset.split("test"):
+        post = CachedPosterior.load(posterior_path(args.run, args.likelihood, shot.index), distance.max_points)
+        cached[shot.index] = replace(post, program=post.program.with_spread(spread))
     if args.subsets:
         try:
             subsets = [(subset, parse_properties(subset)) for subset in args.subsets.split(",")]

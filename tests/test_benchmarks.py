@@ -217,11 +217,17 @@ def test_reader_reports_every_problem(tiny_fsclvr, tmp_path):
     images[4]["shot"] = images[3]["shot"]                              # duplicate shot
     images[5]["pose"]["object_to_world"][0][3] += 1.0                   # matrix disagrees with x
     del images[6]["pose"]                                               # missing field
+    outside = tmp_path / "elsewhere.png"                                # an image outside the folder,
+    outside.write_bytes((folder / images[7]["file"]).read_bytes())
+    images[7]["file"] = str(outside)                                    # by absolute path
+    images[8]["file"] = "../elsewhere.png"                              # by ../
+    (folder / "link.png").symlink_to(outside)
+    images[9]["file"] = "link.png"                                      # by a symbolic link
     _save(folder, labels)
     with pytest.raises(DatasetError) as error:
         load_dataset(folder)
     message = str(error.value)
-    assert "6 problem(s)" in message
+    assert "9 problem(s)" in message and message.count("inside the data-set folder") == 3
     for needle in ("image file is missing", "unreadable image", "has RGB", "appears twice",
                    "disagrees with x, y, z", "missing or malformed field"):
         assert needle in message

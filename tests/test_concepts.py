@@ -131,3 +131,54 @@ def test_distance_terms_parse_from_text():
     for bad in ("colour+bogus", ""):
         with pytest.raises(MitsubaP3Error, match="distance terms"):
             parse_properties(bad)
+
+
+def _sharp_instance(rng, centre: np.ndarray, shape: int, n: int = 300) -> ProtoProgram:
+    """A sharp posterior (sd 0.001) around one instance of a concept."""
+    samples = {name: centre[:3 if name in ("scale", "colour") else 1] + 0.001 * rng.normal(
+        size=(n, 3 if name in ("scale", "colour") else 1)) for name in CONTINUOUS}
+    samples["class"] = np.full(n, shape)
+    return ProtoProgram(samples)
+
+
+def test_fit_spread_recovers_the_within_class_covariance_and_the_error_rate():
+    """Instances of 40 concepts scatter by sd 0.05 around their concept's centre; one image in
+    ten puts its posterior on a wrong shape. The fit recovers both."""
+    from mitsuba_p3.concepts import fit_spread
+
+    rng = np.random.default_rng(0)
+    programs, shapes = {}, {}
+    for c in range(40):
+        centre = rng.uniform(0, 1, 3)
+        shapes[f"c{c}"] = c % 3
+        programs[f"c{c}"] = [_sharp_instance(rng, centre + 0.05 * rng.normal(size=3),
+                                             (c % 3) if i % 10 else (c + 1) % 3) for i in range(5)]
+    spread = fit_spread(programs, shapes)
+    for name in CONTINUOUS:
+        sd = np.sqrt(np.diag(spread.covariance[name]))
+        np.testing.assert_allclose(sd, 0.05, rtol=0.2)
+    assert spread.class_error == pytest.approx(0.2, abs=0.02)       # i % 10 == 0 for 1 of 5 images
+    assert (spread.images, spread.classes) == (200, 40)
+    with pytest.raises(Exception, match="two or more images"):
+        fit_spread({"a": programs["c0"][:1]}, shapes)
+
+
+def test_a_spread_makes_instances_of_one_concept_close_and_keeps_others_apart():
+    """Two sharp posteriors of one concept, 2 sd of its spread apart, are far apart as the paper's
+    programs (the KL counts their distance in their own tiny widths) and close with the spread;
+    another concept, 10 sd away, stays much farther with the spread."""
+    from mitsuba_p3.concepts import ConceptSpread
+
+    rng = np.random.default_rng(1)
+    spread = ConceptSpread({name: np.eye(3 if name in ("scale", "colour") else 1) * 0.05 ** 2
+                            for name in CONTINUOUS}, class_error=0.1)
+    support = _sharp_instance(rng, np.full(3, 0.5), 0)
+    same = _sharp_instance(rng, np.full(3, 0.6), 0)
+    other = _sharp_instance(rng, np.full(3, 1.0), 0)
+    far, near = distance(support, same), distance(support.with_spread(spread), same.with_spread(spread))
+    assert far > 1000 and near < 20, (far, near)
+    assert distance(support.with_spread(spread), other.with_spread(spread)) > 5 * near
+    probabilities = spread.class_mixture(np.array([1.0, 0.0, 0.0]))
+    np.testing.assert_allclose(probabilities, [0.9, 0.05, 0.05])
+    with pytest.raises(Exception, match="spread_shots"):
+        DistanceConfig(spread_shots=1)

@@ -14,7 +14,9 @@ import pytest
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.errors import EvaluationError
+from mitsuba_p3.concepts import DistanceConfig
 from mitsuba_p3.evaluate import (EvaluationConfig, check_run, compute_posteriors, evaluate, posterior_path)
+from mitsuba_p3.evaluate.run import spread_shots
 from mitsuba_p3.fit.model import fit_model
 from mitsuba_p3.fit.scene_opt import SceneOptConfig
 from mitsuba_p3.infer.mcmc import SamplerConfig
@@ -51,13 +53,16 @@ def test_evaluate_resumes_after_kill_and_writes_tables(bench, tmp_path):
     first.wait()
     finished = {p: p.stat().st_mtime_ns for p in folder.glob("*.npz")}
     assert len(finished) >= 2
-    tests = load_dataset(bench / "data").split("test")
-    assert len(finished) < len(tests), "killed too late to test resuming"
+    dataset = load_dataset(bench / "data")
+    images = len(dataset.split("test")) + len(spread_shots(dataset, DistanceConfig.spread_shots))
+    assert len(finished) < images, "killed too late to test resuming"
 
     result = subprocess.run(command, capture_output=True, text=True, timeout=1200)
     assert result.returncode == 0, result.stderr
     assert {p: p.stat().st_mtime_ns for p in finished} == finished      # not recomputed
-    assert len(list(folder.glob("*.npz"))) == len(tests)
+    assert len(list(folder.glob("*.npz"))) == images        # test images, and train images for the spread
+    spread = json.loads((run / f"spread-p3-{DistanceConfig.spread_shots}.json").read_text())
+    assert spread["classes"] == 5 and spread["images"] == 15 and 0 <= spread["class_error"] <= 1
     assert not list(folder.glob("*.tmp*"))
     results = json.loads((run / "results.json").read_text())["results"]["p3"]
     accuracy = results["accuracy"]["5-way 1-shot"]
@@ -78,12 +83,51 @@ def test_evaluate_resumes_after_kill_and_writes_tables(bench, tmp_path):
     chosen = json.loads((run / "distance-colour+class" / "results.json").read_text())
     assert chosen["distance"] == ["colour", "class"] and chosen["results"]["p3"]["accuracy"]["5-way 1-shot"]["episodes"] == 20
     assert (run / "distance-colour+class" / "accuracy.md").is_file()
+    paper = subprocess.run(command + ["--spread-shots", "0"], capture_output=True, text=True, timeout=600)
+    assert paper.returncode == 0, paper.stderr
+    assert (run / "results.json").read_bytes() == paper_results
+    assert json.loads((run / "spread0" / "results.json").read_text())["results"]["p3"]["accuracy"]
     bad = subprocess.run(command + ["--distance", "colour+hue"], capture_output=True, text=True, timeout=300)
     assert bad.returncode != 0 and "hue" in bad.stderr
 
     other = subprocess.run(command[:-len(SAMPLER_FLAGS)] + ["--chains", "6"], capture_output=True, text=True,
                            timeout=300)
     assert other.returncode == 2 and "other settings" in other.stderr
+
+
+@pytest.mark.slow
+def test_workers_die_with_a_killed_evaluate(bench, tmp_path):
+    """SIGKILL of the main process alone (not its group): its joblib workers exit within seconds."""
+    command = [sys.executable, "-m", "mitsuba_p3.cli", "evaluate", str(bench / "data"), "--model",
+               str(bench / "model"), "--out", str(tmp_path / "run"), "--likelihoods", "p3", "--jobs", "2",
+               *SAMPLER_FLAGS]
+    main = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    session = os.getsid(main.pid)
+
+    def others():
+        alive = []
+        for entry in os.listdir("/proc"):
+            try:
+                if entry.isdigit() and int(entry) != main.pid and os.getsid(int(entry)) == session:
+                    alive.append(int(entry))
+            except (ProcessLookupError, PermissionError):
+                pass
+        return alive
+
+    folder = tmp_path / "run" / "posteriors" / "p3"
+    deadline = time.time() + 300
+    while time.time() < deadline and not list(folder.glob("*.npz")):      # the workers are computing
+        time.sleep(0.5)
+    assert len(others()) >= 2
+    os.kill(main.pid, signal.SIGKILL)
+    main.wait()
+    deadline = time.time() + 60
+    while time.time() < deadline and others():
+        time.sleep(0.5)
+    left = others()
+    for pid in left:
+        os.kill(pid, signal.SIGKILL)
+    assert not left, f"workers still running after their parent was killed: {left}"
 
 
 @pytest.mark.slow
@@ -120,6 +164,8 @@ def test_run_folder_refuses_other_settings(bench, tmp_path):
     dataset = load_dataset(bench / "data")
     check_run(tmp_path, dataset, bench / "model", config)
     check_run(tmp_path, dataset, bench / "model", config)                   # same settings: fine
+    with pytest.raises(EvaluationError, match="another model"):             # cached posteriors of another model
+        check_run(tmp_path, dataset, bench / "data", config)
     with pytest.raises(EvaluationError, match="sigma"):                     # another likelihood sigma
         check_run(tmp_path, dataset, bench / "model", EvaluationConfig(likelihoods=("p3",), sampler=TINY, sigma=0.1))
     changed = EvaluationConfig(likelihoods=("p3",), sampler=SamplerConfig(**{**asdict(TINY), "steps": 31}))

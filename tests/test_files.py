@@ -24,3 +24,70 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
             temporary.write_text("half")
             raise RuntimeError("killed")
     assert target.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
+
+
+@pytest.mark.parametrize("content, refused", [
+    ({}, None),                                          # new or empty: fine
+    ({"run.json": "{}"}, None),                          # its own output: resumed
+    ({"labels.json": "{}", "scene.xml": "<scene/>"}, "data set"),
+    ({"model.json": "{}"}, "fitted model"),
+    ({"notes.txt": "mine"}, "not empty"),
+])
+def test_an_output_folder_is_new_empty_or_the_commands_own(tmp_path, content, refused):
+    """Nothing is written into a data set, a model or a folder of someone else's files (one line, no traceback)."""
+    from mitsuba_p3.errors import MitsubaP3Error
+    from mitsuba_p3.files import claim_output_folder
+
+    folder = tmp_path / "out"
+    if content:
+        folder.mkdir()
+        for name, text in content.items():
+            (folder / name).write_text(text)
+    before = {p.name: p.read_text() for p in folder.iterdir()} if folder.exists() else {}
+    if refused is None:
+        assert claim_output_folder(folder, "run.json", "mitsuba-p3 evaluate").is_dir()
+    else:
+        with pytest.raises(MitsubaP3Error, match=refused):
+            claim_output_folder(folder, "run.json", "mitsuba-p3 evaluate")
+        assert {p.name: p.read_text() for p in folder.iterdir()} == before
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(MitsubaP3Error, match="is a file"):
+        claim_output_folder(tmp_path / "file", "run.json", "mitsuba-p3 evaluate")
+
+
+def test_images_are_read_as_colours_whatever_their_encoding(tmp_path):
+    """Palette PNGs and GIFs give their colours (not palette indices); CMYK JPEGs their RGB."""
+    import numpy as np
+    from PIL import Image
+
+    from mitsuba_p3.images import read_png
+
+    rgb = np.zeros((8, 8, 3), np.uint8)
+    rgb[:, :4] = (200, 30, 40)
+    rgb[:, 4:] = (10, 120, 250)
+    Image.fromarray(rgb).convert("P", palette=Image.Palette.ADAPTIVE, colors=4).save(tmp_path / "p.png")
+    Image.fromarray(rgb).convert("P", palette=Image.Palette.ADAPTIVE, colors=4).save(tmp_path / "p.gif")
+    Image.fromarray(rgb).convert("CMYK").save(tmp_path / "c.jpg", quality=100)
+    for name, tolerance in (("p.png", 1e-6), ("p.gif", 1e-6), ("c.jpg", 0.03)):
+        np.testing.assert_allclose(read_png(tmp_path / name), rgb / 255.0, atol=tolerance, err_msg=name)
+
+
+@pytest.mark.parametrize("name, refused", [("out.jpg", None), ("out.png", None), ("out.exr", "cannot write .exr"),
+                                           ("newdir/", "is a folder"), ("afile/x.png", "is a file")])
+def test_image_outputs_are_written_as_named_or_refused(tmp_path, name, refused):
+    import numpy as np
+    from PIL import Image
+
+    from mitsuba_p3.errors import ImageError
+    from mitsuba_p3.images import write_image
+
+    (tmp_path / "afile").write_text("x")
+    target = f"{tmp_path}/{name}"
+    image = np.full((4, 6, 3), 0.5, np.float32)
+    if refused:
+        with pytest.raises(ImageError, match=refused):
+            write_image(target, image)
+        return
+    write_image(target, image)
+    with Image.open(target) as written:
+        assert written.format == {"out.jpg": "JPEG", "out.png": "PNG"}[name] and written.size == (6, 4)

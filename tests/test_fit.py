@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -238,6 +239,16 @@ def test_one_stage_reruns_alone(tiny_model, tiny_dataset):
     assert (tiny_model.root / "scene.npz").read_bytes() == before
     with pytest.raises(MitsubaP3Error, match="unknown stage"):
         fit_model(tiny_dataset, tiny_model.root, stages=["nope"])
+
+
+def test_fit_never_writes_into_a_data_set(tiny_dataset):
+    """``fit DATASET --out DATASET`` used to overwrite the data set's path-traced scene.xml."""
+    before = {p.name: p.read_bytes() for p in Path(tiny_dataset).iterdir() if p.is_file()}
+    with pytest.raises(MitsubaP3Error, match="data set"):
+        fit_model(tiny_dataset, tiny_dataset, stages=["scene"], scene_config=SceneOptConfig(**TINY_FIT))
+    assert {p.name: p.read_bytes() for p in Path(tiny_dataset).iterdir() if p.is_file()} == before
+    with pytest.raises(MitsubaP3Error, match="is a benchmark data set, not a fitted model"):
+        FittedModel(tiny_dataset)
 
 
 def test_cli_fit_errors_are_one_line(tmp_path):

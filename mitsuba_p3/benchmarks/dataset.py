@@ -104,6 +104,15 @@ class Dataset:
         return self._cache[index]
 
 
+def _inside(root: Path, relative) -> bool:
+    """Whether a path from labels.json is relative and stays in the data-set folder (symbolic links
+    followed): a data set never reads files elsewhere."""
+    if not isinstance(relative, str) or Path(relative).is_absolute():
+        return False
+    base = Path(root).resolve()
+    return (base / relative).resolve().is_relative_to(base)
+
+
 def _check_record(i: int, record: dict, root: Path, problems: list[str]) -> Shot | None:
     where = f"images[{i}]"
     try:
@@ -131,11 +140,15 @@ def _check_record(i: int, record: dict, root: Path, problems: list[str]) -> Shot
                         f"disagrees with x, y, z {position.round(5).tolist()}")
     if not np.all(np.isfinite(position)) or not np.isfinite(yaw):
         problems.append(f"{where}: pose has non-finite values")
-    if not file.is_file():
+    if not _inside(root, record["file"]):
+        problems.append(f"{where}: the image path must be relative and inside the data-set folder")
+    elif not file.is_file():
         problems.append(f"{where}: image file is missing")
     mesh = record.get("mesh")
     mesh_path = root / mesh if mesh else None
-    if mesh_path is not None and not mesh_path.is_file():
+    if mesh_path is not None and not _inside(root, mesh):
+        problems.append(f"{where}: mesh {mesh} must be a relative path inside the data-set folder")
+    elif mesh_path is not None and not mesh_path.is_file():
         problems.append(f"{where}: mesh {mesh} is missing")
     return Shot(i, file, split, shot, cls, position, yaw, scale, matrix, mesh_path)
 

@@ -60,13 +60,15 @@ def benchmark_check(
 @benchmark_app.command("show")
 def benchmark_show(
     folder: Path = typer.Argument(..., help="Data-set folder."),
-    output: Path = typer.Option(Path("sheet.png"), "-o", "--output", help="Contact sheet PNG."),
+    output: Path = typer.Option(Path("sheet.png"), "-o", "--output", help="Contact sheet (.png or .jpg)."),
     resolution: str = typer.Option("240x320", help="HxW of each thumbnail."),
 ) -> None:
     """Contact sheet: one labelled shot per class."""
     from ..benchmarks.dataset import load_dataset
+    from ..images import check_image_output
     from ..plots import contact_sheet
 
+    check_image_output(output)
     dataset = load_dataset(folder, resolution=parse_resolution(resolution))
     contact_sheet(dataset, output)
     typer.echo(f"wrote {output}")

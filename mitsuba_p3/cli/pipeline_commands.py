@@ -8,6 +8,7 @@ from typing import Optional
 
 import typer
 
+from ..concepts import DistanceConfig
 from ..evaluate.config import PRESET
 from ..infer.mcmc import SamplerConfig
 from ..infer.smc import SMCConfig
@@ -16,6 +17,8 @@ from .app import app, phase_progress_bar, progress_bar, sampler_option
 
 NOISE_HELP = ("Noise model: fitted (the Gaussian fitted to the model's train residuals, with hard shadows), "
               "robust (the fitted inlier/outlier mixture) or paper (sigma 1, no shadows: the paper's).")
+SPREAD_HELP = ("Train images per train class whose posteriors fit the protoprograms' concept spread "
+               "(sampled like the test images; 0: the paper's programs, tables in RUN/spread0).")
 SAMPLER_HELP_TEXT = ("auto (smc under a fitted noise model, mh under the paper's), smc (tempered SMC over the "
                      "shape classes, weighed by their evidence) or mh (multi-chain Metropolis-Hastings; the chain "
                      "options apply).")
@@ -95,10 +98,12 @@ def infer(
     from ..fit.model import FittedModel
     from ..images import load_observation
     from ..infer.posterior import default_likelihood, infer_image
+    from ..files import claim_output_folder
     from ..infer.report import write_report
 
     fitted = FittedModel(model)
     observed = load_observation(image)
+    claim_output_folder(output, "posterior.nc", "mitsuba-p3 infer")
     config = choose_sampler(sampler, SamplerConfig(chains=chains, steps=steps, burn_in=burn_in,
                                                    tune_rounds=tune_rounds, tune_steps=tune_steps, seed=seed),
                             particles, noise, sigma)
@@ -136,18 +141,20 @@ def evaluate(
     distance: str = typer.Option("all", help="Distance terms: 'all' (the paper's) or some joined by '+', e.g. "
                                              "colour+class; another distance reuses the run's posteriors and "
                                              "writes its tables to RUN/distance-TERMS."),
+    spread_shots: int = typer.Option(DistanceConfig.spread_shots, help=SPREAD_HELP),
     renderer: str = typer.Option("mitsuba", help="mitsuba (pure_callback) or jax (native tracer)."),
     seed: int = typer.Option(0, help="Sampler seed."),
 ) -> None:
     """Few-shot accuracy, calibration and pose error (ADI) of P3/NP3 on a benchmark's test split."""
-    from ..concepts import DistanceConfig, parse_properties
+    from ..concepts import parse_properties
     from ..evaluate import EvaluationConfig, tables_dir
     from ..evaluate import evaluate as run_evaluation
 
     chosen = tuple(k.strip() for k in likelihoods.split(",") if k.strip())
     config = EvaluationConfig(likelihoods=chosen, sigma=sigma, noise=noise, renderer=renderer, episodes=episodes,
                               jobs=jobs,
-                              dask=dask, distance=DistanceConfig(properties=parse_properties(distance)),
+                              dask=dask, distance=DistanceConfig(properties=parse_properties(distance),
+                                                                 spread_shots=spread_shots),
                               sampler=choose_sampler(sampler, SamplerConfig(
                                   chains=chains, steps=steps, burn_in=burn_in, tune_rounds=tune_rounds,
                                   tune_steps=tune_steps, seed=seed), particles, noise, sigma))
@@ -185,12 +192,13 @@ def reproduce(
                                                      "runs/V-sigmaS."),
     distance: str = typer.Option("all", help="Distance terms: 'all' or e.g. colour+class (tables in "
                                              "runs/V/distance-TERMS; the posteriors are shared)."),
+    spread_shots: int = typer.Option(DistanceConfig.spread_shots, help=SPREAD_HELP),
 ) -> None:
     """Generate, fit and evaluate every benchmark, then write the paper's accuracy and ADI tables."""
     import time
     from dataclasses import replace
 
-    from ..concepts import DistanceConfig, parse_properties
+    from ..concepts import parse_properties
     from ..evaluate import EvaluationConfig
     from ..reproduce import ReproduceConfig
     from ..reproduce import reproduce as run_reproduction
@@ -200,7 +208,8 @@ def reproduce(
                              noise, sigma)
     evaluation = EvaluationConfig(likelihoods=tuple(k.strip() for k in likelihoods.split(",") if k.strip()),
                                   sigma=sigma, noise=noise, sampler=sampler, episodes=episodes, jobs=jobs,
-                                  distance=DistanceConfig(properties=parse_properties(distance)))
+                                  distance=DistanceConfig(properties=parse_properties(distance),
+                                                          spread_shots=spread_shots))
     config = ReproduceConfig(benchmarks=tuple(b.strip() for b in benchmarks.split(",") if b.strip()),
                              evaluation=evaluation)
     start = time.perf_counter()

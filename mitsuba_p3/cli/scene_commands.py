@@ -13,7 +13,7 @@ from .app import COLOUR, MATERIAL, SCALE, SETS, SHADOWS, SHAPE, SHIFT, THETA, ap
 @app.command()
 def render(
     scene_file: Path = typer.Argument(..., help="Scene XML (e.g. scenes/fsclvr.xml)."),
-    output: Path = typer.Option(..., "-o", "--output", help="PNG to write."),
+    output: Path = typer.Option(..., "-o", "--output", help="Image to write (.png or .jpg)."),
     shape: Optional[str] = SHAPE,
     color: Optional[str] = COLOUR,
     material: Optional[str] = MATERIAL,
@@ -26,14 +26,15 @@ def render(
     renderer: str = typer.Option("mitsuba", help="Renderer: mitsuba or jax."),
 ) -> None:
     """Render a scene XML to a PNG, optionally changing the object."""
-    from ..images import write_png
+    from ..images import check_image_output, write_image
     from ..render import make_renderer
     from ..scene import load_scene, object_overrides
 
+    check_image_output(output)
     scene = load_scene(scene_file, object_overrides(shape, color, material, shift, theta, scale, sets))
     height, width = parse_resolution(resolution)
     image = make_renderer(scene, renderer, height=height, width=width, shadows=shadows).render()
-    write_png(output, image)
+    write_image(output, image)
     typer.echo(f"wrote {output} ({image.shape[0]}x{image.shape[1]}, {renderer})")
 
 
@@ -53,15 +54,16 @@ def crosscheck(
     resolution: Optional[str] = typer.Option("120x160", help="HxW."),
 ) -> None:
     """Render a scene with Mitsuba and with the JAX tracer; print agreement figures (JSON)."""
-    from ..images import write_png
+    from ..images import check_image_output, write_image
     from ..render.crosscheck import crosscheck as run_crosscheck
     from ..render.crosscheck import difference_image
     from ..scene import load_scene, object_overrides
 
+    check_image_output(output)
     scene = load_scene(scene_file, object_overrides(shape, color, material, shift, theta, scale, sets))
     height, width = parse_resolution(resolution)
     figures, mitsuba_image, jax_image = run_crosscheck(scene, height=height, width=width, shadows=shadows)
-    write_png(output, difference_image(mitsuba_image, jax_image))
+    write_image(output, difference_image(mitsuba_image, jax_image))
     typer.echo(json.dumps({**{k: round(v, 6) for k, v in figures.items()}, "difference_image": str(output)},
                           indent=2))
 

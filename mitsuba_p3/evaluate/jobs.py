@@ -22,7 +22,7 @@ import numpy as np
 from ..benchmarks.dataset import Dataset, load_dataset
 from ..concepts import CONTINUOUS, ProtoProgram
 from ..errors import EvaluationError
-from ..files import atomic_json, atomic_npz
+from ..files import atomic_json, atomic_npz, claim_output_folder
 from .config import EvaluationConfig
 
 RUN_FORMAT = "mitsuba-p3-evaluation"
@@ -66,6 +66,29 @@ def _limit_threads(threads: int) -> None:
         dr.set_thread_count(threads)
 
 
+_WATCHED = False
+
+
+def _exit_with_parent() -> None:
+    """In a worker process: exit as soon as the process that started it is gone (a killed
+    ``evaluate`` must not leave its workers computing, then idling at a gigabyte each). A daemon
+    thread polls the parent's pid once a second; started once per worker."""
+    import threading
+
+    global _WATCHED
+    if _WATCHED:
+        return
+    _WATCHED = True
+    parent = os.getppid()
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
 def _render_threads() -> int:
     import drjit as dr
 
@@ -75,7 +98,8 @@ def _render_threads() -> int:
 def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str, config: EvaluationConfig,
                   out: str, threads: int | None = None) -> str:
     """Sample one image's posterior and cache what evaluation needs (a picklable job)."""
-    if threads:
+    if threads:                    # a joblib worker process of this machine
+        _exit_with_parent()
         _limit_threads(threads)
     from ..fit.model import FittedModel
     from ..infer.posterior import default_likelihood, infer_image
@@ -140,11 +164,22 @@ def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: Evaluati
     """Create RUN/run.json, or refuse a folder made with other settings or another data set."""
     record = {"format": RUN_FORMAT, "version": 1, "dataset": str(Path(dataset.root).resolve()),
               "model": str(Path(model_dir).resolve()), **config.cache_key()}
+    # a run folder may already hold baselines scored on the same episodes (mitsuba-p3 baseline evaluate)
+    claim_output_folder(run_dir, ("run.json", "baselines"), "mitsuba-p3 evaluate")
     path = run_dir / "run.json"
     if path.exists():
-        previous = json.loads(path.read_text())
+        try:
+            previous = json.loads(path.read_text())
+        except ValueError:
+            previous = None
+        if not isinstance(previous, dict) or previous.get("format") != RUN_FORMAT:
+            raise EvaluationError(f"{path} is not a {RUN_FORMAT} record; use another --out folder")
+        for source in ("dataset", "model"):
+            if previous.get(source) != record[source]:
+                raise EvaluationError(f"{run_dir} holds posteriors of another {source} ({previous.get(source)}); "
+                                      "use another --out folder or remove it")
         changed = [k for k in record if k not in ("dataset", "model") and previous.get(k) != record[k]]
-        if previous.get("format") != RUN_FORMAT or changed:
+        if changed:
             raise EvaluationError(f"{run_dir} holds an evaluation with other settings ({', '.join(changed)}); "
                                   "use another --out folder or remove it")
         return

@@ -2,10 +2,12 @@
 from __future__ import annotations
 
 import csv
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
-from ..benchmarks.dataset import load_dataset
+from ..benchmarks.dataset import Dataset, load_dataset
+from ..concepts import ConceptSpread, fit_spread
 from ..files import atomic_json, atomic_open
 from ..fit.attributes import rules_for
 from ..fit.model import FittedModel
@@ -14,6 +16,34 @@ from .jobs import CachedPosterior, check_run, compute_posteriors, posterior_path
 from .metrics import (accuracy_of, attribute_recovery, classify_episodes, feasible_settings, pose_errors, pose_summary,
                       setting_name)
 from .tables import tables_dir, write_tables
+
+
+def train_shapes(dataset: Dataset) -> dict[str, int | None]:
+    """Each train class's true shape as an index into SHAPES (None for a shape outside them)."""
+    from ..shapes import SHAPES
+
+    labels = dataset.class_labels
+    return {name: SHAPES.index(labels[name].shape) if labels[name].shape in SHAPES else None
+            for name in dataset.classes("train")}
+
+
+def spread_shots(dataset: Dataset, per_class: int) -> list[int]:
+    """The train images whose posteriors fit the concept spread: the first ``per_class`` of each train class."""
+    return [shot.index for name in dataset.classes("train") for shot in dataset.shots_of(name)[:per_class]]
+
+
+def run_spread(dataset: Dataset, run_dir: Path, likelihood: str, config: EvaluationConfig) -> ConceptSpread | None:
+    """The concept spread of a run's cached train posteriors (written to RUN/spread-LIKELIHOOD-N.json),
+    or None when the distance asks for the paper's programs."""
+    per_class = config.distance.spread_shots
+    if not per_class:
+        return None
+    programs = {name: [CachedPosterior.load(posterior_path(run_dir, likelihood, shot.index),
+                                            config.distance.max_points).program
+                       for shot in dataset.shots_of(name)[:per_class]] for name in dataset.classes("train")}
+    spread = fit_spread(programs, train_shapes(dataset))
+    atomic_json(run_dir / f"spread-{likelihood}-{per_class}.json", spread.to_json())
+    return spread
 
 
 def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path,
@@ -26,16 +56,19 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
     dataset = load_dataset(dataset_dir)
     run_dir = Path(run_dir)
     check_run(run_dir, dataset, Path(model_dir), config)
+    shots = [shot.index for shot in dataset.split("test")] + spread_shots(dataset, config.distance.spread_shots)
     compute_posteriors(dataset, Path(model_dir), run_dir, config,
-                       (lambda done, total: progress("posteriors", done, total)) if progress else None)
+                       (lambda done, total: progress("posteriors", done, total)) if progress else None, shots)
     fewest = min(len(dataset.shots_of(c)) for c in dataset.classes("test"))
     settings = feasible_settings(len(dataset.classes("test")), fewest, config.queries_per_class)
     rules = rules_for(FittedModel(model_dir), dataset)
     results, predictions, attributes = {}, [], []
     for likelihood in config.likelihoods:
-        cached = {shot.index: CachedPosterior.load(posterior_path(run_dir, likelihood, shot.index),
-                                                   config.distance.max_points)
-                  for shot in dataset.split("test")}
+        spread = run_spread(dataset, run_dir, likelihood, config)
+        cached = {}
+        for shot in dataset.split("test"):
+            post = CachedPosterior.load(posterior_path(run_dir, likelihood, shot.index), config.distance.max_points)
+            cached[shot.index] = replace(post, program=post.program.with_spread(spread))
         accuracy = {}
         for step, (n_way, k_shot) in enumerate(settings):
             if progress:

@@ -13,11 +13,13 @@ from .metrics import SETTINGS, setting_name
 def tables_dir(run_dir: Path, distance: DistanceConfig) -> Path:
     """Where a run's tables for ``distance`` go: the run folder for the paper's distance (all
     terms), ``RUN/distance-colour+class`` (say) for another, its terms in the order of
-    ``PROPERTIES`` (the distance is their sum); the posteriors are shared."""
+    ``PROPERTIES`` (the distance is their sum), with ``-spreadN`` (``spread0``: no spread) for
+    programs whose concept spread differs from the default; the posteriors are shared."""
     terms = [p for p in PROPERTIES if p in distance.properties]
-    if tuple(terms) == PROPERTIES:
-        return Path(run_dir)
-    return Path(run_dir) / ("distance-" + "+".join(terms))
+    name = "" if tuple(terms) == PROPERTIES else "distance-" + "+".join(terms)
+    if distance.spread_shots != DistanceConfig.spread_shots:
+        name += ("-" if name else "") + f"spread{distance.spread_shots}"
+    return Path(run_dir) / name if name else Path(run_dir)
 
 
 def markdown_table(header: list[str], rows: list[list[str]]) -> str:

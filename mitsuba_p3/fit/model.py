@@ -35,7 +35,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..files import atomic_json, atomic_npz, atomic_write
+from ..files import atomic_json, atomic_npz, atomic_write, claim_output_folder
 from ..benchmarks.dataset import Dataset, load_dataset
 from .features import Channel, channel_losses, select_channels
 from .noise import NoiseModel, fit_noise
@@ -46,6 +46,9 @@ from .scene_opt import SceneFit, SceneOptConfig, geometry_of, material_key, opti
 MODEL_FORMAT = "mitsuba-p3-model"
 MODEL_VERSION = 1
 STAGES = ("scene", "features", "priors", "noise")
+# the files of a model folder (any of them marks a folder as a fit's own, e.g. one killed before model.json)
+MODEL_FILES = ("model.json", "scene.npz", "scene.xml", "snapshots.npz", "pattern.png", "materials.json",
+               "loss_curve.csv", "channel_losses.npz", "features.json", "priors.json", "noise.json", "figures")
 
 
 class FittedModel:
@@ -54,8 +57,12 @@ class FittedModel:
     def __init__(self, root: str | Path):
         self.root = Path(root)
         path = self.root / "model.json"
+        if (self.root / "labels.json").is_file():
+            raise FitError(f"{self.root} is a benchmark data set, not a fitted model: fit one with "
+                           f"`mitsuba-p3 fit {self.root} --out MODEL_FOLDER` and pass --model MODEL_FOLDER")
         if not path.is_file():
-            raise FitError(f"{self.root}: no model.json; fit one with `mitsuba-p3 fit DATASET --out {self.root}`")
+            raise FitError(f"{self.root}: no model.json; fit a model into a new folder with "
+                           "`mitsuba-p3 fit DATASET --out MODEL_FOLDER`")
         self.info = json.loads(path.read_text())
         if self.info.get("format") != MODEL_FORMAT or self.info.get("version") != MODEL_VERSION:
             raise FitError(f"{path}: not a version-{MODEL_VERSION} {MODEL_FORMAT} folder")
@@ -164,8 +171,7 @@ def fit_model(dataset_dir: str | Path, out: str | Path, stages: Sequence[str] = 
         raise FitError(f"unknown stage(s) {sorted(unknown)}; choose from {', '.join(STAGES)}")
     scene_config = scene_config or SceneOptConfig()
     dataset = load_dataset(dataset_dir, resolution=tuple(scene_config.resolution))
-    root = Path(out)
-    root.mkdir(parents=True, exist_ok=True)
+    root = claim_output_folder(out, MODEL_FILES, "mitsuba-p3 fit")
 
     if "scene" in stages:
         start = time.perf_counter()

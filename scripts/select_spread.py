@@ -1,0 +1,87 @@
+"""Should protoprograms carry a concept spread? Decided on a benchmark's *train* classes, cross-fitted.
+
+Loads cached posteriors of train images (``mitsuba-p3 evaluate`` writes them to
+``RUN/posteriors/LIKELIHOOD`` when it fits a spread, or any run over train shots),
+splits the train classes into two halves, fits the
+:class:`~mitsuba_p3.concepts.ConceptSpread` on one half and scores seeded N-way
+1-shot episodes among the other half's classes, then the other way round. Each
+distance is scored with the paper's programs (no spread) and with the fitted
+spread, so the spread is judged on classes it was not fitted on. No test image
+is used.
+
+    python scripts/select_spread.py data/fsclvr out/eval-fitted [--likelihood p3] [--episodes 200]
+        [--subsets all,colour+class]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from mitsuba_p3.benchmarks.dataset import load_dataset
+from mitsuba_p3.concepts import DistanceConfig, fit_spread, parse_properties
+from mitsuba_p3.errors import MitsubaP3Error
+from mitsuba_p3.evaluate import CachedPosterior, markdown_table, one_shot_accuracy, posterior_path
+from mitsuba_p3.evaluate.run import train_shapes
+
+WAYS = (5, 10)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("dataset", type=Path)
+    parser.add_argument("run", type=Path, help="a run folder holding posteriors of train images")
+    parser.add_argument("--likelihood", default="p3")
+    parser.add_argument("--subsets", default="all,colour+class")
+    parser.add_argument("--episodes", type=int, default=200)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    try:
+        subsets = [(s, parse_properties(s)) for s in args.subsets.split(",")]
+    except MitsubaP3Error as error:
+        parser.error(str(error))
+    dataset = load_dataset(args.dataset)
+    programs = {}
+    for name in dataset.classes("train"):
+        paths = [posterior_path(args.run, args.likelihood, s.index) for s in dataset.shots_of(name)]
+        found = [CachedPosterior.load(p, DistanceConfig.max_points).program for p in paths if p.exists()]
+        if len(found) >= 2:
+            programs[name] = found
+    names = sorted(programs)
+    half = len(names) // 2
+    if half < max(WAYS):
+        parser.error(f"{args.run} has 2+ train posteriors for {len(names)} classes; "
+                     f"cross-fitting {max(WAYS)}-way episodes needs {2 * max(WAYS)}")
+    order = np.random.default_rng(args.seed).permutation(names)
+    folds = [list(order[:half]), list(order[half:])]
+    shapes = train_shapes(dataset)
+    spreads = [fit_spread({c: programs[c] for c in folds[1 - f]}, shapes) for f in range(2)]
+    for f, spread in enumerate(spreads):
+        print(f"spread fitted on fold {1 - f} ({spread.images} images, {spread.classes} classes): class error "
+              f"{spread.class_error:.3f}; sd " + ", ".join(
+                  f"{k} {np.sqrt(np.diag(v)).round(4).tolist()}" for k, v in spread.covariance.items()), flush=True)
+    rows, report = [], {}
+    for label, properties in subsets:
+        config = DistanceConfig(properties=properties)
+        for spread_name in ("none", "fitted"):
+            cells = []
+            for n_way in WAYS:
+                scores = []
+                for f, fold in enumerate(folds):
+                    spread = spreads[f] if spread_name == "fitted" else None
+                    scored = {c: [p.with_spread(spread) for p in programs[c]] for c in fold}
+                    scores.append(one_shot_accuracy(scored, n_way, args.episodes, args.seed, config))
+                cells.append(100 * float(np.mean(scores)))
+            report[f"{label}/{spread_name}"] = cells
+            rows.append([label, spread_name] + [f"{c:.1f}" for c in cells])
+            print(f"{label} spread {spread_name}: {' / '.join(rows[-1][2:])}", flush=True)
+    print()
+    print(markdown_table(["distance terms", "spread"] + [f"{n}-way 1-shot (held-out train classes)" for n in WAYS],
+                         rows))
+    print(json.dumps(report))
+
+
+if __name__ == "__main__":
+    main()
