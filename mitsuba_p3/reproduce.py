@@ -2,7 +2,8 @@
 
 For fsclvr, dark and room: generate the benchmark (only the images missing),
 fit a model to it (if missing) and evaluate P3 and NP3 on its test split; ood is
-evaluated with the fsclvr model, as in the paper. Every step resumes: benchmarks,
+evaluated with the fsclvr model, as in the paper, and with the concept spread of
+the fsclvr run (it has no train classes of its own). Every step resumes: benchmarks,
 fits and per-image posteriors already on disk are reused. Writes, in ``out``:
 
 - ``accuracy.md`` / ``accuracy.csv``: the paper's layout (rows: models; columns:
@@ -33,6 +34,7 @@ from typing import Callable
 from .benchmarks.protocol import VARIANTS
 from .errors import ConfigError
 from .evaluate import PRESET, SETTINGS, EvaluationConfig, evaluate, load_baselines, markdown_table, setting_name
+from .evaluate.run import sample_spread
 from .files import atomic_json, atomic_open, atomic_write
 from .infer.likelihood import NOISES
 
@@ -101,8 +103,14 @@ def reproduce(data: str | Path, out: str | Path, config: ReproduceConfig | None 
         prepared = (time.perf_counter() - start) / 60
         start = time.perf_counter()
         noise = evaluation.noise if evaluation.noise != "paper" and evaluation.sigma is None else evaluation.sigma
-        evaluate(folder, model, out / "runs" / run_name(variant, noise), evaluation,
-                 progress=(lambda phase, d, t: progress(f"{variant}: {phase}", d, t)) if progress else None)
+        track = (lambda phase, d, t: progress(f"{variant}: {phase}", d, t)) if progress else None
+        spread_from = None
+        if variant == "ood" and evaluation.distance.spread_shots:
+            # ood has no train classes: its programs take the concept spread of the fsclvr run
+            spread_from = out / "runs" / run_name("fsclvr", noise)
+            sample_spread(data / "fsclvr", model, spread_from, evaluation, track)
+        evaluate(folder, model, out / "runs" / run_name(variant, noise), evaluation, progress=track,
+                 spread_from=spread_from)
         minutes[variant] = (time.perf_counter() - start) / 60
         # the tables cover every benchmark and sigma evaluated so far, this run's included
         write_paper_tables(out, collect(out))

@@ -266,6 +266,23 @@ def test_reader_accepts_a_hand_made_folder(tmp_path):
     dataset = load_dataset(tmp_path)
     assert dataset.classes("test") == ["large-blue-rubber-cube", "large-red-rubber-sphere"]
     assert dataset.image(3).shape == (120, 160, 3)
+    assert dataset.shots[3].cls.rgb == (1, 2, 1)             # the labels' colour, not CLEVR's blue
+
+    # a colour of one's own needs its sRGB; a shape of one's own its mesh: refused up front, not in fit/evaluate
+    images[0]["class"].update(colour="magenta", rgb=[255, 0, 255])
+    images[1]["class"].update(colour="magenta", rgb=[255, 0, 255])
+    (tmp_path / "labels.json").write_text(json.dumps({"format": "mitsuba-p3-benchmark", "version": 1,
+                                                      "images": images}))
+    assert load_dataset(tmp_path).shots[0].cls.rgb == (255, 0, 255)
+    del images[0]["class"]["rgb"]
+    images[1]["class"]["rgb"] = [255, 0, 256]
+    images[2]["class"]["shape"] = images[3]["class"]["shape"] = "torus"
+    (tmp_path / "labels.json").write_text(json.dumps({"format": "mitsuba-p3-benchmark", "version": 1,
+                                                      "images": images}))
+    with pytest.raises(DatasetError) as error:
+        load_dataset(tmp_path)
+    message = str(error.value)
+    assert "give its sRGB as class.rgb" in message and "0-255" in message and "give the object's mesh" in message
 
 
 # ------------------------------------------------------------------ episodes

@@ -191,3 +191,23 @@ def test_cli_refuses_a_bad_sigma(bench, tmp_path):
                              str(bench / "model"), "--out", str(tmp_path), "--sigma", "0"],
                             capture_output=True, text=True, timeout=300)
     assert result.returncode != 0 and "sigma" in result.stderr
+
+
+def test_refusals_come_before_any_work(bench, tmp_path):
+    """A data set without train classes (like ood) needs the spread of its model's own run; one whose
+    classes cannot fill a few-shot setting is refused too: both before a posterior or run.json exists."""
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(bench / "data", data)
+    labels = json.loads((data / "labels.json").read_text())
+    tests_only = {**labels, "images": [r for r in labels["images"] if r["split"] == "test"]}
+    (data / "labels.json").write_text(json.dumps(tests_only))
+    config = EvaluationConfig(likelihoods=("p3",), sampler=TINY)
+    with pytest.raises(EvaluationError, match="--spread-from"):
+        evaluate(data, bench / "model", tmp_path / "run", config)
+    one_shot = {**labels, "images": [r for r in labels["images"] if r["shot"] == 0]}
+    (data / "labels.json").write_text(json.dumps(one_shot))
+    with pytest.raises(EvaluationError, match="fill none of the few-shot settings"):
+        evaluate(data, bench / "model", tmp_path / "run", config)
+    assert not (tmp_path / "run").exists()

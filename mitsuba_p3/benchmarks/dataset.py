@@ -18,6 +18,8 @@ import numpy as np
 
 from ..errors import DatasetError
 from ..images import ASPECT_TOLERANCE, INFERENCE_RESOLUTION, load_image
+from ..scene import COLOURS
+from ..shapes import SHAPES
 from .protocol import SPLITS, ClassLabel
 
 FORMAT = "mitsuba-p3-benchmark"
@@ -50,7 +52,24 @@ class Shot:
 
 def _class_from(record: dict) -> ClassLabel:
     c = record["class"]
-    return ClassLabel(str(c["shape"]), str(c["colour"]), str(c["material"]), str(c["size"]))
+    rgb = c.get("rgb")
+    srgb = tuple(int(v) for v in rgb) if isinstance(rgb, list) and len(rgb) == 3 else None
+    return ClassLabel(str(c["shape"]), str(c["colour"]), str(c["material"]), str(c["size"]), srgb)
+
+
+def _check_class(where: str, record: dict, cls: ClassLabel, problems: list[str]) -> None:
+    """What fit and evaluate will need of a class, checked before they start: a colour they can
+    start from, a shape they can score."""
+    rgb = record["class"].get("rgb")
+    if rgb is not None and not (isinstance(rgb, list) and len(rgb) == 3
+                                and all(isinstance(v, int) and 0 <= v <= 255 for v in rgb)):
+        problems.append(f"{where}: class rgb must be three whole numbers 0-255, got {rgb!r}")
+    elif rgb is None and cls.colour not in COLOURS:
+        problems.append(f"{where}: colour {cls.colour!r} is not one of CLEVR's ({', '.join(COLOURS)}); "
+                        "give its sRGB as class.rgb, e.g. [255, 0, 255]")
+    if cls.shape not in SHAPES and not record.get("mesh"):
+        problems.append(f"{where}: shape {cls.shape!r} is not a primitive ({', '.join(SHAPES)}); "
+                        "give the object's mesh file as \"mesh\" (its pose error needs the surface)")
 
 
 class Dataset:
@@ -129,6 +148,7 @@ def _check_record(i: int, record: dict, root: Path, problems: list[str]) -> Shot
         problems.append(f"{where}: missing or malformed field ({exc!r})")
         return None
     where = f"{record['file']}"
+    _check_class(where, record, cls, problems)
     if split not in SPLITS:
         problems.append(f"{where}: split {split!r} is not one of {SPLITS}")
     if scale.shape != (3,) or np.any(~np.isfinite(scale)) or np.any(scale <= 0):

@@ -9,7 +9,7 @@ poses depend on the seed only, not on the variant: ``fsclvr``, ``dark`` and
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -54,6 +54,7 @@ class ClassLabel:
     colour: str
     material: str
     size: str
+    srgb: tuple | None = field(default=None, compare=False)   # the labels' own sRGB (0-255), if given
 
     @property
     def name(self) -> str:
@@ -62,11 +63,12 @@ class ClassLabel:
 
     @property
     def rgb(self) -> tuple[int, int, int]:
-        """The colour's CLEVR sRGB value, 0-255."""
-        return COLOURS[self.colour]
+        """The colour's sRGB value, 0-255: the labels' own, else CLEVR's for its name."""
+        return tuple(self.srgb) if self.srgb else COLOURS[self.colour]
 
     def as_dict(self) -> dict:
-        return {**asdict(self), "rgb": list(self.rgb)}
+        return {"shape": self.shape, "colour": self.colour, "material": self.material, "size": self.size,
+                "rgb": list(self.rgb)}
 
 
 def all_classes() -> list[ClassLabel]:

@@ -142,6 +142,9 @@ def evaluate(
                                              "colour+class; another distance reuses the run's posteriors and "
                                              "writes its tables to RUN/distance-TERMS."),
     spread_shots: int = typer.Option(DistanceConfig.spread_shots, help=SPREAD_HELP),
+    spread_from: Optional[Path] = typer.Option(None, help="For a data set without train classes (ood): the "
+                                                          "evaluation run of the model's own benchmark, same "
+                                                          "settings, whose concept spread to use."),
     renderer: str = typer.Option("mitsuba", help="mitsuba (pure_callback) or jax (native tracer)."),
     seed: int = typer.Option(0, help="Sampler seed."),
 ) -> None:
@@ -161,7 +164,7 @@ def evaluate(
     bar, track = phase_progress_bar("posteriors")
 
     with bar:
-        results = run_evaluation(dataset, model, out, config, progress=track)
+        results = run_evaluation(dataset, model, out, config, progress=track, spread_from=spread_from)
     summary = {k: {"accuracy": {s: round(100 * a["mean"], 1) for s, a in r["accuracy"].items()},
                    "mean_adi_m": round(r["adi"]["mean"], 4),
                    "attributes": {a: round(v, 3) for a, v in r["attributes"].items()}} for k, r in results.items()}

@@ -2,12 +2,14 @@
 from __future__ import annotations
 
 import csv
+import json
 from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
 from ..benchmarks.dataset import Dataset, load_dataset
 from ..concepts import ConceptSpread, fit_spread
+from ..errors import EvaluationError
 from ..files import atomic_json, atomic_open
 from ..fit.attributes import rules_for
 from ..fit.model import FittedModel
@@ -32,39 +34,81 @@ def spread_shots(dataset: Dataset, per_class: int) -> list[int]:
     return [shot.index for name in dataset.classes("train") for shot in dataset.shots_of(name)[:per_class]]
 
 
-def run_spread(dataset: Dataset, run_dir: Path, likelihood: str, config: EvaluationConfig) -> ConceptSpread | None:
+def spread_file(run_dir: Path, likelihood: str, per_class: int) -> Path:
+    return Path(run_dir) / f"spread-{likelihood}-{per_class}.json"
+
+
+def run_spread(dataset: Dataset, run_dir: Path, likelihood: str, config: EvaluationConfig,
+               spread_from: Path | None = None) -> ConceptSpread | None:
     """The concept spread of a run's cached train posteriors (written to RUN/spread-LIKELIHOOD-N.json),
-    or None when the distance asks for the paper's programs."""
+    or None when the distance asks for the paper's programs. A data set without train classes (ood,
+    scored with another benchmark's model) takes the spread of ``spread_from``, that benchmark's run."""
     per_class = config.distance.spread_shots
     if not per_class:
         return None
+    if not dataset.classes("train"):
+        source = spread_file(spread_from or run_dir, likelihood, per_class)
+        if not source.is_file():
+            raise EvaluationError(f"{dataset.root} has no train classes to fit the concept spread on: pass "
+                                  "--spread-from RUN, the evaluation of the model's own benchmark with the same "
+                                  f"settings (it holds {source.name}), or --spread-shots 0")
+        spread = ConceptSpread.from_json(json.loads(source.read_text()))
+        atomic_json(spread_file(run_dir, likelihood, per_class), spread.to_json())
+        return spread
     programs = {name: [CachedPosterior.load(posterior_path(run_dir, likelihood, shot.index),
                                             config.distance.max_points).program
                        for shot in dataset.shots_of(name)[:per_class]] for name in dataset.classes("train")}
     spread = fit_spread(programs, train_shapes(dataset))
-    atomic_json(run_dir / f"spread-{likelihood}-{per_class}.json", spread.to_json())
+    atomic_json(spread_file(run_dir, likelihood, per_class), spread.to_json())
     return spread
+
+
+def sample_spread(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path, config: EvaluationConfig,
+                  progress: Callable[[str, int, int], None] | None = None) -> None:
+    """Only the concept-spread part of an evaluation run: its train posteriors (cached, resumable, shared
+    with a full evaluation of the same run) and RUN/spread-LIKELIHOOD-N.json."""
+    dataset = load_dataset(dataset_dir)
+    check_run(Path(run_dir), dataset, Path(model_dir), config)
+    compute_posteriors(dataset, Path(model_dir), Path(run_dir), config,
+                       (lambda done, total: progress("spread posteriors", done, total)) if progress else None,
+                       spread_shots(dataset, config.distance.spread_shots))
+    for likelihood in config.likelihoods:
+        run_spread(dataset, Path(run_dir), likelihood, config)
 
 
 def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path,
              config: EvaluationConfig | None = None,
-             progress: Callable[[str, int, int], None] | None = None) -> dict:
-    """Posteriors (resumable), episodes, pose errors and tables; returns the results."""
+             progress: Callable[[str, int, int], None] | None = None,
+             spread_from: str | Path | None = None) -> dict:
+    """Posteriors (resumable), episodes, pose errors and tables; returns the results. ``spread_from``:
+    the run whose concept spread a data set without train classes uses (see :func:`run_spread`)."""
     import numpy as np
 
     config = config or EvaluationConfig()
     dataset = load_dataset(dataset_dir)
     run_dir = Path(run_dir)
+    fewest = min(len(dataset.shots_of(c)) for c in dataset.classes("test")) if dataset.classes("test") else 0
+    settings = feasible_settings(len(dataset.classes("test")), fewest, config.queries_per_class)
+    if not settings:
+        raise EvaluationError(f"{dataset.root}: {len(dataset.classes('test'))} test classes with at least {fewest} "
+                              f"images each fill none of the few-shot settings (5 or 10 classes, 1 or 5 supports "
+                              f"and {config.queries_per_class} query each)")
+    train = [len(dataset.shots_of(c)) for c in dataset.classes("train")]
+    if config.distance.spread_shots and train and not any(n >= 2 for n in train):
+        raise EvaluationError(f"{dataset.root}: fitting the concept spread needs a train class with 2 or more "
+                              "images; add them, or pass --spread-shots 0 for the paper's programs")
+    if config.distance.spread_shots and not train:
+        for likelihood in config.likelihoods:
+            if not spread_file(spread_from or run_dir, likelihood, config.distance.spread_shots).is_file():
+                run_spread(dataset, run_dir, likelihood, config, spread_from)       # raises, naming the fix
+    rules = rules_for(FittedModel(model_dir), dataset)            # the model folder is checked before any work
     check_run(run_dir, dataset, Path(model_dir), config)
     shots = [shot.index for shot in dataset.split("test")] + spread_shots(dataset, config.distance.spread_shots)
     compute_posteriors(dataset, Path(model_dir), run_dir, config,
                        (lambda done, total: progress("posteriors", done, total)) if progress else None, shots)
-    fewest = min(len(dataset.shots_of(c)) for c in dataset.classes("test"))
-    settings = feasible_settings(len(dataset.classes("test")), fewest, config.queries_per_class)
-    rules = rules_for(FittedModel(model_dir), dataset)
     results, predictions, attributes = {}, [], []
     for likelihood in config.likelihoods:
-        spread = run_spread(dataset, run_dir, likelihood, config)
+        spread = run_spread(dataset, run_dir, likelihood, config, spread_from)
         cached = {}
         for shot in dataset.split("test"):
             post = CachedPosterior.load(posterior_path(run_dir, likelihood, shot.index), config.distance.max_points)
