@@ -40,7 +40,7 @@ def claim_output_folder(path: str | Path, own: str | tuple, command: str) -> Pat
     if path.exists() and not path.is_dir():
         raise MitsubaP3Error(f"{path} is a file; {command} writes a folder: give a new folder name")
     if path.is_dir():
-        entries = [e.name for e in path.iterdir()]
+        entries = [e.name for e in path.iterdir() if e.name != ".lock"]
         for marker, kind in FOLDER_KINDS.items():
             if marker not in owns and marker in entries:
                 raise MitsubaP3Error(f"{path} holds {kind} ({marker}); {command} will not write into it: "
@@ -102,3 +102,31 @@ def atomic_npz(path: str | Path, compressed: bool = False, **arrays) -> Path:
     with atomic_path(path) as temporary, open(temporary, "wb") as f:
         (np.savez_compressed if compressed else np.savez)(f, **arrays)
     return Path(path)
+
+
+@contextmanager
+def folder_lock(path: str | Path, command: str) -> Iterator[None]:
+    """Hold ``path/.lock`` (an advisory ``flock``) for a block: a second run into the same folder is
+    refused at once instead of computing everything twice. The kernel drops the lock when its
+    process dies, so a killed run never leaves a stale lock."""
+    import fcntl
+
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    handle = open(path / ".lock", "a+")
+    try:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            owner = handle.read().strip() or "another process"
+            raise MitsubaP3Error(f"{command}: {path} is in use by another run (pid {owner}); wait for it to "
+                                 "finish or give another --out folder") from None
+        handle.seek(0)
+        handle.truncate()
+        handle.write(str(os.getpid()))
+        handle.flush()
+        yield
+    finally:
+        handle.close()
+

@@ -211,3 +211,36 @@ def test_refusals_come_before_any_work(bench, tmp_path):
     with pytest.raises(EvaluationError, match="fill none of the few-shot settings"):
         evaluate(data, bench / "model", tmp_path / "run", config)
     assert not (tmp_path / "run").exists()
+
+
+def test_a_damaged_cached_posterior_is_kept_aside_and_sampled_again(bench, tmp_path):
+    dataset = load_dataset(bench / "data")
+    shot = dataset.split("test")[0].index
+    config = EvaluationConfig(likelihoods=("p3",), sampler=TINY)
+    path = posterior_path(tmp_path, "p3", shot)
+    path.parent.mkdir(parents=True)
+    path.write_bytes(b"")                                          # zero bytes
+    compute_posteriors(dataset, bench / "model", tmp_path, config, shots=[shot])
+    with np.load(path) as f:
+        assert f["sample_colour"].shape[1] == 3
+    assert path.with_suffix(".corrupt").read_bytes() == b""
+
+
+def test_a_second_run_into_a_busy_folder_is_refused(bench, tmp_path):
+    """While one evaluation holds its run folder, another into the same folder stops at once; the
+    lock goes with its holder."""
+    from mitsuba_p3.errors import MitsubaP3Error
+    from mitsuba_p3.files import folder_lock
+
+    config = EvaluationConfig(likelihoods=("p3",), sampler=TINY, episodes=2)
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from mitsuba_p3.files import folder_lock\n"
+                               f"with folder_lock({str(tmp_path / 'run')!r}, 'test'):\n"
+                               "    print('held', flush=True); time.sleep(60)"], stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "held"
+    with pytest.raises(MitsubaP3Error, match=f"in use by another run \\(pid {holder.pid}\\)"):
+        evaluate(bench / "data", bench / "model", tmp_path / "run", config)
+    assert not list((tmp_path / "run").glob("posteriors/*/*.npz"))
+    holder.kill()
+    holder.wait()
+    with folder_lock(tmp_path / "run", "test"):             # released with its dead holder
+        pass

@@ -392,3 +392,19 @@ def test_attribute_rules_name_a_dim_metal_by_its_hue_and_learn_the_material_kind
               "colour": np.tile([0.1, 0.8, 0.8], (n, 1))}
     decided = rules.decide(rubber)
     assert (decided["size"], decided["colour"], decided["material"]) == ("small", "cyan", "rubber")
+
+
+@pytest.mark.parametrize("name, damage", [("model.json", b""), ("priors.json", b'{"gmms": {'),
+                                          ("scene.npz", None), ("features.json", None), ("noise.json", b"[]")])
+def test_a_damaged_model_folder_is_one_line_naming_the_refit(tiny_model, tmp_path, name, damage):
+    import shutil
+
+    folder = tmp_path / "model"
+    shutil.copytree(tiny_model.root, folder)
+    if damage is None:
+        (folder / name).unlink()
+    else:
+        (folder / name).write_bytes(damage)
+    with pytest.raises(MitsubaP3Error, match=f"{name}: missing or unreadable.*--stages"):
+        model = FittedModel(folder)
+        model.scene(), model.channels, model.prior, model.noise

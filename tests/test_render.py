@@ -141,3 +141,17 @@ def test_bad_parameters_raise(scene, update, message):
     renderer = make_renderer(scene, height=H, width=W)
     with pytest.raises(SceneError, match=message):
         renderer.render(update)
+
+
+def test_a_render_over_the_memory_limit_is_refused_before_allocation(scene, monkeypatch):
+    """20000x20000 used to take 11.7 GB and a minute before anything was said."""
+    from mitsuba_p3.errors import SceneError
+    from mitsuba_p3.render import make_renderer
+
+    monkeypatch.setenv("MITSUBA_P3_MEMORY_GB", "0.01")                 # 10 MB: one 120x160 image fits
+    renderer = make_renderer(scene, "mitsuba", height=120, width=160)
+    assert renderer.render().shape == (120, 160, 3)
+    with pytest.raises(SceneError, match="needs about .* GB, over the limit"):
+        renderer.render({"shift": np.zeros((64, 2), np.float32)})        # a batch of 64 does not
+    with pytest.raises(SceneError, match="MITSUBA_P3_MEMORY_GB"):
+        make_renderer(scene, "mitsuba", height=2000, width=2000)

@@ -186,6 +186,20 @@ def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: Evaluati
     atomic_json(path, record)
 
 
+def _cached(path: Path) -> bool:
+    """Whether a posterior is cached and readable. An unreadable file (a disk that filled up, a
+    copy cut short) is kept aside as NAME.corrupt, and the posterior is sampled again."""
+    if not path.exists():
+        return False
+    try:
+        with np.load(path) as f:
+            f["sample_class"], f["seconds"]
+        return True
+    except Exception:                      # numpy and zipfile raise many types for a damaged file
+        os.replace(path, path.with_suffix(".corrupt"))
+        return False
+
+
 def compute_posteriors(dataset: Dataset, model_dir: Path, run_dir: Path, config: EvaluationConfig,
                        progress: Callable[[int, int], None] | None = None,
                        shots: list[int] | None = None) -> None:
@@ -195,7 +209,7 @@ def compute_posteriors(dataset: Dataset, model_dir: Path, run_dir: Path, config:
 
     tests = dataset.split("test") if shots is None else [dataset.shots[i] for i in shots]
     todo = [(shot.index, likelihood) for likelihood in config.likelihoods for shot in tests
-            if not posterior_path(run_dir, likelihood, shot.index).exists()]
+            if not _cached(posterior_path(run_dir, likelihood, shot.index))]
     total = len(tests) * len(config.likelihoods)
     done = total - len(todo)
     if progress:

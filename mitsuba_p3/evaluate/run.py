@@ -10,7 +10,7 @@ from typing import Callable
 from ..benchmarks.dataset import Dataset, load_dataset
 from ..concepts import ConceptSpread, fit_spread
 from ..errors import EvaluationError
-from ..files import atomic_json, atomic_open
+from ..files import atomic_json, atomic_open, folder_lock
 from ..fit.attributes import rules_for
 from ..fit.model import FittedModel
 from .config import EvaluationConfig
@@ -69,11 +69,12 @@ def sample_spread(dataset_dir: str | Path, model_dir: str | Path, run_dir: str |
     with a full evaluation of the same run) and RUN/spread-LIKELIHOOD-N.json."""
     dataset = load_dataset(dataset_dir)
     check_run(Path(run_dir), dataset, Path(model_dir), config)
-    compute_posteriors(dataset, Path(model_dir), Path(run_dir), config,
-                       (lambda done, total: progress("spread posteriors", done, total)) if progress else None,
-                       spread_shots(dataset, config.distance.spread_shots))
-    for likelihood in config.likelihoods:
-        run_spread(dataset, Path(run_dir), likelihood, config)
+    with folder_lock(run_dir, "mitsuba-p3 evaluate"):
+        compute_posteriors(dataset, Path(model_dir), Path(run_dir), config,
+                           (lambda done, total: progress("spread posteriors", done, total)) if progress else None,
+                           spread_shots(dataset, config.distance.spread_shots))
+        for likelihood in config.likelihoods:
+            run_spread(dataset, Path(run_dir), likelihood, config)
 
 
 def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path,
@@ -103,45 +104,47 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
                 run_spread(dataset, run_dir, likelihood, config, spread_from)       # raises, naming the fix
     rules = rules_for(FittedModel(model_dir), dataset)            # the model folder is checked before any work
     check_run(run_dir, dataset, Path(model_dir), config)
-    shots = [shot.index for shot in dataset.split("test")] + spread_shots(dataset, config.distance.spread_shots)
-    compute_posteriors(dataset, Path(model_dir), run_dir, config,
-                       (lambda done, total: progress("posteriors", done, total)) if progress else None, shots)
-    results, predictions, attributes = {}, [], []
-    for likelihood in config.likelihoods:
-        spread = run_spread(dataset, run_dir, likelihood, config, spread_from)
-        cached = {}
-        for shot in dataset.split("test"):
-            post = CachedPosterior.load(posterior_path(run_dir, likelihood, shot.index), config.distance.max_points)
-            cached[shot.index] = replace(post, program=post.program.with_spread(spread))
-        accuracy = {}
-        for step, (n_way, k_shot) in enumerate(settings):
-            if progress:
-                progress(f"episodes {likelihood}", step, len(settings))
-            rows = [{**row, "model": likelihood} for row in classify_episodes(dataset, cached, n_way, k_shot, config)]
-            if progress:
-                progress(f"episodes {likelihood}", step + 1, len(settings))
-            predictions += rows
-            accuracy[setting_name(n_way, k_shot)] = accuracy_of(rows, config.episodes)
-        per_class, overall = pose_summary(pose_errors(dataset, cached))
-        rows, recovered = attribute_recovery(dataset, cached, rules)
-        attributes += [{"model": likelihood, **row} for row in rows]
-        results[likelihood] = {
-            "accuracy": accuracy, "adi_per_class": per_class, "adi": overall, "attributes": recovered,
-            "seconds_per_image": float(np.mean([c.seconds for c in cached.values()])),
-            "max_r_hat_median": float(np.median([c.max_r_hat for c in cached.values()])),
-        }
-    out = tables_dir(run_dir, config.distance)
-    out.mkdir(parents=True, exist_ok=True)
-    with atomic_open(out / "predictions.csv") as f:
-        if predictions:
-            writer = csv.DictWriter(f, fieldnames=list(predictions[0]))
+    with folder_lock(run_dir, "mitsuba-p3 evaluate"):
+        shots = [shot.index for shot in dataset.split("test")] + spread_shots(dataset, config.distance.spread_shots)
+        compute_posteriors(dataset, Path(model_dir), run_dir, config,
+                           (lambda done, total: progress("posteriors", done, total)) if progress else None, shots)
+        results, predictions, attributes = {}, [], []
+        for likelihood in config.likelihoods:
+            spread = run_spread(dataset, run_dir, likelihood, config, spread_from)
+            cached = {}
+            for shot in dataset.split("test"):
+                post = CachedPosterior.load(posterior_path(run_dir, likelihood, shot.index),
+                                            config.distance.max_points)
+                cached[shot.index] = replace(post, program=post.program.with_spread(spread))
+            accuracy = {}
+            for step, (n_way, k_shot) in enumerate(settings):
+                if progress:
+                    progress(f"episodes {likelihood}", step, len(settings))
+                rows = [{**row, "model": likelihood} for row in classify_episodes(dataset, cached, n_way, k_shot, config)]
+                if progress:
+                    progress(f"episodes {likelihood}", step + 1, len(settings))
+                predictions += rows
+                accuracy[setting_name(n_way, k_shot)] = accuracy_of(rows, config.episodes)
+            per_class, overall = pose_summary(pose_errors(dataset, cached))
+            rows, recovered = attribute_recovery(dataset, cached, rules)
+            attributes += [{"model": likelihood, **row} for row in rows]
+            results[likelihood] = {
+                "accuracy": accuracy, "adi_per_class": per_class, "adi": overall, "attributes": recovered,
+                "seconds_per_image": float(np.mean([c.seconds for c in cached.values()])),
+                "max_r_hat_median": float(np.median([c.max_r_hat for c in cached.values()])),
+            }
+        out = tables_dir(run_dir, config.distance)
+        out.mkdir(parents=True, exist_ok=True)
+        with atomic_open(out / "predictions.csv") as f:
+            if predictions:
+                writer = csv.DictWriter(f, fieldnames=list(predictions[0]))
+                writer.writeheader()
+                writer.writerows(predictions)
+        with atomic_open(out / "attributes.csv") as f:
+            writer = csv.DictWriter(f, fieldnames=list(dict.fromkeys(k for row in attributes for k in row)))
             writer.writeheader()
-            writer.writerows(predictions)
-    with atomic_open(out / "attributes.csv") as f:
-        writer = csv.DictWriter(f, fieldnames=list(dict.fromkeys(k for row in attributes for k in row)))
-        writer.writeheader()
-        writer.writerows(attributes)
-    files = write_tables(out, results, baselines_dir=run_dir)
-    atomic_json(out / "results.json", {"dataset": str(dataset.root), "results": results,
-                                       "distance": list(config.distance.properties), "files": files})
-    return results
+            writer.writerows(attributes)
+        files = write_tables(out, results, baselines_dir=run_dir)
+        atomic_json(out / "results.json", {"dataset": str(dataset.root), "results": results,
+                                           "distance": list(config.distance.properties), "files": files})
+        return results

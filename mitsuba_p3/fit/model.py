@@ -29,6 +29,8 @@ import csv
 import io
 import json
 import time
+import zipfile
+from contextlib import contextmanager
 from dataclasses import asdict
 from pathlib import Path
 from typing import Callable, Sequence
@@ -63,9 +65,20 @@ class FittedModel:
         if not path.is_file():
             raise FitError(f"{self.root}: no model.json; fit a model into a new folder with "
                            "`mitsuba-p3 fit DATASET --out MODEL_FOLDER`")
-        self.info = json.loads(path.read_text())
-        if self.info.get("format") != MODEL_FORMAT or self.info.get("version") != MODEL_VERSION:
+        with self._reading("model.json", "scene"):
+            self.info = json.loads(path.read_text())
+        if not isinstance(self.info, dict) or self.info.get("format") != MODEL_FORMAT \
+                or self.info.get("version") != MODEL_VERSION:
             raise FitError(f"{path}: not a version-{MODEL_VERSION} {MODEL_FORMAT} folder")
+
+    @contextmanager
+    def _reading(self, name: str, stage: str):
+        """Turn a missing, truncated or malformed model file into one line naming the refit."""
+        try:
+            yield
+        except (OSError, ValueError, KeyError, TypeError, zipfile.BadZipFile, EOFError) as error:
+            raise FitError(f"{self.root / name}: missing or unreadable ({type(error).__name__}: {error}); refit it "
+                           f"with `mitsuba-p3 fit DATASET --out {self.root} --stages {stage}`") from None
 
     def require(self, stage: str) -> None:
         if stage not in self.info.get("stages", {}):
@@ -75,13 +88,14 @@ class FittedModel:
     @property
     def globals(self) -> dict[str, np.ndarray]:
         self.require("scene")
-        with np.load(self.root / "scene.npz") as data:
+        with self._reading("scene.npz", "scene"), np.load(self.root / "scene.npz") as data:
             return {k: data[k] for k in data.files}
 
     @property
     def materials(self) -> dict[str, dict]:
         self.require("scene")
-        return json.loads((self.root / "materials.json").read_text())
+        with self._reading("materials.json", "scene"):
+            return json.loads((self.root / "materials.json").read_text())
 
     def scene(self):
         """The fitted Phong :class:`~mitsuba_p3.scene.Scene`."""
@@ -90,19 +104,22 @@ class FittedModel:
     @property
     def channels(self) -> list[Channel]:
         self.require("features")
-        data = json.loads((self.root / "features.json").read_text())
-        return [Channel(c["layer"], int(c["channel"]), float(c["loss"])) for c in data["channels"]]
+        with self._reading("features.json", "features"):
+            data = json.loads((self.root / "features.json").read_text())
+            return [Channel(c["layer"], int(c["channel"]), float(c["loss"])) for c in data["channels"]]
 
     @property
     def prior(self) -> Prior:
         self.require("priors")
-        return Prior.from_dict(json.loads((self.root / "priors.json").read_text()))
+        with self._reading("priors.json", "priors"):
+            return Prior.from_dict(json.loads((self.root / "priors.json").read_text()))
 
     @property
     def noise(self) -> NoiseModel:
         """The pixel noise model fitted to the train residuals (:mod:`.noise`)."""
         self.require("noise")
-        return NoiseModel(**json.loads((self.root / "noise.json").read_text())["model"])
+        with self._reading("noise.json", "noise"):
+            return NoiseModel(**json.loads((self.root / "noise.json").read_text())["model"])
 
     @property
     def dataset_root(self) -> Path:
