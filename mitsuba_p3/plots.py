@@ -191,6 +191,11 @@ def translation_contours(shift: np.ndarray, path: str | Path, truth: Sequence[fl
 
     plt = _pyplot()
     shift = np.asarray(shift)[:: max(1, len(shift) // 5000)]
+    # draws that barely move (short chains, a sharp posterior) have a singular covariance: jitter them
+    # by 0.1 mm so the KDE exists; the contours then mark where the draws sit
+    if len(shift) < 3 or np.linalg.eigvalsh(np.cov(shift.T)).min() < 1e-12:
+        base = np.resize(shift, (max(len(shift), 3), 2))
+        shift = base + np.random.default_rng(0).normal(0.0, 1e-4, base.shape)
     kde = gaussian_kde(shift.T)
     centre = (shift.min(0) + shift.max(0)) / 2
     half = 0.625 * max(float(np.max(shift.max(0) - shift.min(0))), 2e-3)  # a square window, 25% margin

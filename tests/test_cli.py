@@ -38,7 +38,8 @@ def _broken(tmp_path, old, new):
     return path
 
 
-@pytest.mark.parametrize("case", ["malformed", "shape", "material", "scale", "texture", "resolution"])
+@pytest.mark.parametrize("case", ["malformed", "shape", "material", "scale", "texture", "resolution", "geometry",
+                                  "output"])
 def test_bad_input_is_one_error_line(tmp_path, case):
     scene = SCENES / "fsclvr.xml"
     extra = []
@@ -54,11 +55,16 @@ def test_bad_input_is_one_error_line(tmp_path, case):
         scene = _broken(tmp_path, "textures/wood.png", "textures/nowhere.png")
     elif case == "resolution":
         extra = ["--resolution", "120by160"]
-    done = run("render", scene, *extra, "-o", tmp_path / "out.png")
+    elif case == "geometry":        # other geometry in a shape group: it was ignored, exit 0
+        scene = _broken(tmp_path, '<shape type="sphere">', '<shape type="dodecahedron">')
+    output = tmp_path / "out.png"
+    if case == "output":            # -o out.exr wrote PNG bytes under that name
+        output = tmp_path / "out.exr"
+    done = run("render", scene, *extra, "-o", output)
     assert done.returncode != 0
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error:"), done.stderr
-    assert not (tmp_path / "out.png").exists()
+    assert not output.exists()
 
 
 def test_sampler_auto_follows_the_noise_model():

@@ -194,8 +194,9 @@ def test_cli_refuses_a_bad_sigma(bench, tmp_path):
 
 
 def test_refusals_come_before_any_work(bench, tmp_path):
-    """A data set without train classes (like ood) needs the spread of its model's own run; one whose
-    classes cannot fill a few-shot setting is refused too: both before a posterior or run.json exists."""
+    """A data set without train classes (like ood) needs the spread of its model's own run; a Dask
+    scheduler must answer; classes must fill a few-shot setting: all refused before a posterior or
+    run.json exists."""
     import shutil
 
     data = tmp_path / "data"
@@ -206,6 +207,9 @@ def test_refusals_come_before_any_work(bench, tmp_path):
     config = EvaluationConfig(likelihoods=("p3",), sampler=TINY)
     with pytest.raises(EvaluationError, match="--spread-from"):
         evaluate(data, bench / "model", tmp_path / "run", config)
+    with pytest.raises(EvaluationError, match="no Dask scheduler answers"):
+        evaluate(bench / "data", bench / "model", tmp_path / "run",
+                 EvaluationConfig(likelihoods=("p3",), sampler=TINY, dask="tcp://127.0.0.1:1"))
     one_shot = {**labels, "images": [r for r in labels["images"] if r["shot"] == 0]}
     (data / "labels.json").write_text(json.dumps(one_shot))
     with pytest.raises(EvaluationError, match="fill none of the few-shot settings"):

@@ -54,3 +54,12 @@ def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_
     assert any(line.startswith("| P3 (sigma 0.1, colour) | this project | 80.0/80.0/80.0/80.0 |") for line in lines)
     adi = (tmp_path / "adi.md").read_text()
     assert "P3 (sigma 0.1) mean ADI" in adi and "colour" not in adi  # ADI does not depend on the distance
+
+
+@pytest.mark.parametrize("shift", [np.full((100, 2), 0.01), np.c_[np.linspace(0, 0.01, 100), np.zeros(100)],
+                                   np.full((1, 2), 0.01)])
+def test_translation_figure_survives_draws_that_do_not_move(tmp_path, shift):
+    """Short chains on a large image gave a singular covariance in the figure step, after posterior.nc."""
+    from mitsuba_p3.plots import translation_contours
+
+    assert translation_contours(shift, tmp_path / "t.png").stat().st_size > 1000

@@ -186,6 +186,25 @@ def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: Evaluati
     atomic_json(path, record)
 
 
+def check_scheduler(address: str) -> None:
+    """Refuse, in seconds rather than after Dask's 30 s timeout, a scheduler nobody listens at."""
+    import socket
+    from urllib.parse import urlparse
+
+    parsed = urlparse(address if "://" in address else f"tcp://{address}")
+    try:
+        port = parsed.port
+    except ValueError:
+        port = None
+    if not parsed.hostname or port is None:
+        raise EvaluationError(f"--dask must be a scheduler address such as tcp://host:8786; got {address!r}")
+    try:
+        socket.create_connection((parsed.hostname, port), timeout=3).close()
+    except OSError as error:
+        raise EvaluationError(f"no Dask scheduler answers at {address} ({error.strerror or error}); start one "
+                              "(dask scheduler) or drop --dask") from None
+
+
 def _cached(path: Path) -> bool:
     """Whether a posterior is cached and readable. An unreadable file (a disk that filled up, a
     copy cut short) is kept aside as NAME.corrupt, and the posterior is sampled again."""

@@ -14,7 +14,7 @@ from ..files import atomic_json, atomic_open, folder_lock
 from ..fit.attributes import rules_for
 from ..fit.model import FittedModel
 from .config import EvaluationConfig
-from .jobs import CachedPosterior, check_run, compute_posteriors, posterior_path
+from .jobs import CachedPosterior, check_run, check_scheduler, compute_posteriors, posterior_path
 from .metrics import (accuracy_of, attribute_recovery, classify_episodes, feasible_settings, pose_errors, pose_summary,
                       setting_name)
 from .tables import tables_dir, write_tables
@@ -103,6 +103,8 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
             if not spread_file(spread_from or run_dir, likelihood, config.distance.spread_shots).is_file():
                 run_spread(dataset, run_dir, likelihood, config, spread_from)       # raises, naming the fix
     rules = rules_for(FittedModel(model_dir), dataset)            # the model folder is checked before any work
+    if config.dask:
+        check_scheduler(config.dask)
     check_run(run_dir, dataset, Path(model_dir), config)
     with folder_lock(run_dir, "mitsuba-p3 evaluate"):
         shots = [shot.index for shot in dataset.split("test")] + spread_shots(dataset, config.distance.spread_shots)

@@ -315,6 +315,18 @@ def load_scene(path: str | Path, overrides: Mapping[str, object] | None = None) 
     group = ids.get(shape_name)
     if group is None or group.get("type") != "shapegroup" or group.find("shape") is None:
         raise SceneError(f"{source}: the shape group {shape_name!r} is missing")
+    # the renderers draw the project's own primitives: a group edited into other geometry would be
+    # ignored without a word, so it is refused
+    for name in SHAPES:
+        found = ids.get(name)
+        if found is None or found.get("type") != "shapegroup":
+            continue
+        types = [child.get("type") for child in found.findall("shape")]
+        expected = [part.type for part in PARTS[name]]
+        if types != expected:
+            raise SceneError(f"{source}: the shape group {name!r} must hold the parts "
+                             f"{' + '.join(expected)}, found {' + '.join(map(str, types)) or 'none'}; the renderers "
+                             "draw only the three primitives (move, scale or recolour the object instead)")
     material = _material_from_xml(_bsdf_of(group.find("shape"), ids, source, "object"), source, "object")
     tf = _parse_transform(inst.find("transform"), source, "object")
     translate = tf.get("translate", np.zeros(3))
