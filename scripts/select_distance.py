@@ -17,7 +17,8 @@ from pathlib import Path
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.concepts import DistanceConfig, parse_properties
 from mitsuba_p3.errors import MitsubaP3Error
-from mitsuba_p3.evaluate import CachedPosterior, markdown_table, one_shot_accuracy, posterior_path
+from mitsuba_p3.evaluate import markdown_table, one_shot_accuracy
+from mitsuba_p3.evaluate.jobs import cached_train_programs
 
 WAYS = (5, 10)
 
@@ -37,10 +38,7 @@ def main() -> None:
     except MitsubaP3Error as error:
         parser.error(str(error))
     dataset = load_dataset(args.dataset)
-    programs = {}
-    for name in dataset.classes("train"):
-        paths = [posterior_path(args.run, args.likelihood, s.index) for s in dataset.shots_of(name)]
-        programs[name] = [CachedPosterior.load(p, DistanceConfig.max_points).program for p in paths if p.exists()]
+    programs = cached_train_programs(dataset, args.run, args.likelihood, DistanceConfig.max_points)
     if min(len(v) for v in programs.values()) < 2:
         parser.error(f"{args.run} needs at least 2 cached posteriors of every train class (select_sigma.py)")
     rows = []

@@ -23,7 +23,8 @@ import numpy as np
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.concepts import DistanceConfig, fit_spread, parse_properties
 from mitsuba_p3.errors import MitsubaP3Error
-from mitsuba_p3.evaluate import CachedPosterior, markdown_table, one_shot_accuracy, posterior_path
+from mitsuba_p3.evaluate import markdown_table, one_shot_accuracy
+from mitsuba_p3.evaluate.jobs import cached_train_programs
 from mitsuba_p3.evaluate.run import train_shapes
 
 WAYS = (5, 10)
@@ -43,12 +44,9 @@ def main() -> None:
     except MitsubaP3Error as error:
         parser.error(str(error))
     dataset = load_dataset(args.dataset)
-    programs = {}
-    for name in dataset.classes("train"):
-        paths = [posterior_path(args.run, args.likelihood, s.index) for s in dataset.shots_of(name)]
-        found = [CachedPosterior.load(p, DistanceConfig.max_points).program for p in paths if p.exists()]
-        if len(found) >= 2:
-            programs[name] = found
+    programs = {name: found for name, found in
+                cached_train_programs(dataset, args.run, args.likelihood, DistanceConfig.max_points).items()
+                if len(found) >= 2}
     names = sorted(programs)
     half = len(names) // 2
     if half < max(WAYS):

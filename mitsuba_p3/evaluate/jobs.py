@@ -160,6 +160,16 @@ class CachedPosterior:
                        f["sample_shift"].astype(np.float64) if "sample_shift" in f.files else None)
 
 
+def cached_train_programs(dataset: Dataset, run_dir: Path, likelihood: str,
+                          max_points: int = 500) -> dict[str, list[ProtoProgram]]:
+    """The programs of every cached train posterior of a run, by class (for choices made on train classes)."""
+    programs = {}
+    for name in dataset.classes("train"):
+        paths = [posterior_path(run_dir, likelihood, shot.index) for shot in dataset.shots_of(name)]
+        programs[name] = [CachedPosterior.load(path, max_points).program for path in paths if path.exists()]
+    return programs
+
+
 def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: EvaluationConfig) -> None:
     """Create RUN/run.json, or refuse a folder made with other settings or another data set."""
     record = {"format": RUN_FORMAT, "version": 1, "dataset": str(Path(dataset.root).resolve()),
