@@ -13,7 +13,11 @@
 2. **Classification.** For every N-way K-shot setting, the same seeded episodes
    as every other model (:func:`mitsuba_p3.benchmarks.episodes.sample_episodes`);
    each class program merges its K support programs, each query is classified by
-   :func:`mitsuba_p3.concepts.classify_many`. Accuracy per setting with a 95% interval
+   :func:`mitsuba_p3.concepts.classify_many`. The programs carry the concept
+   spread (:class:`mitsuba_p3.concepts.ConceptSpread`) fitted on the posteriors
+   of ``DistanceConfig.spread_shots`` train images per train class, sampled and
+   cached like the test images (``RUN/spread-LIKELIHOOD-N.json``); a data set
+   without train classes (ood) takes the spread of its model's own run. Accuracy per setting with a 95% interval
    over episodes (normal approximation), and the calibration of the class
    probabilities (expected calibration error over 10 bins; a reliability plot).
 3. **Pose.** ADI (:mod:`mitsuba_p3.pose`) of every test image's posterior median
