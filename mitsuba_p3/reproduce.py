@@ -155,10 +155,18 @@ def parse_run_name(name: str) -> tuple[str, float | str | None] | None:
         return None
 
 
+def _describe(part: str) -> str:
+    if part == "spread0":
+        return "no concept spread"
+    return f"spread of {part.removeprefix('spread')} train images" if part.startswith("spread") else part
+
+
 def label(likelihood: str, sigma: float | str | None, distance: str | None = None) -> str:
     """A table row's name: ``P3``, ``P3 (fitted noise)``, ``P3 (sigma 0.3)``, ``NP3 (colour+class)``, ..."""
     noise = [] if sigma is None else [f"{sigma} noise"] if sigma in FITTED_NOISES else [f"sigma {sigma:g}"]
-    notes = noise + ([] if distance is None else [distance])
+    # a tables folder's name: distance terms and/or the concept spread (spread0: the paper's programs)
+    parts = distance.replace("-spread", "\0spread").split("\0") if distance else []
+    notes = noise + [_describe(part) for part in parts]
     return likelihood.upper() + (f" ({', '.join(notes)})" if notes else "")
 
 

@@ -40,18 +40,19 @@ def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_
                 "adi": {"mean": adi, "median": adi}}
 
     for name, accuracy in (("fsclvr", 0.5), ("fsclvr-sigma0.1", 0.9), ("fsclvr/distance-colour+class", 0.7),
-                           ("fsclvr-sigma0.1/distance-colour", 0.8)):
+                           ("fsclvr-sigma0.1/distance-colour", 0.8), ("fsclvr/spread0", 0.6)):
         (tmp_path / "runs" / name).mkdir(parents=True)
         (tmp_path / "runs" / name / "results.json").write_text(json.dumps({"results": {"p3": result(accuracy, 0.01)}}))
     found = tables.collect(tmp_path)
     assert set(found) == {("fsclvr", None, None), ("fsclvr", 0.1, None), ("fsclvr", None, "colour+class"),
-                          ("fsclvr", 0.1, "colour")}
+                          ("fsclvr", 0.1, "colour"), ("fsclvr", None, "spread0")}
     tables.write_paper_tables(tmp_path, found)
     lines = (tmp_path / "accuracy.md").read_text().splitlines()
     assert any(line.startswith("| P3 | this project | 50.0/50.0/50.0/50.0 |") for line in lines)
     assert any(line.startswith("| P3 (sigma 0.1) | this project | 90.0/90.0/90.0/90.0 |") for line in lines)
     assert any(line.startswith("| P3 (colour+class) | this project | 70.0/70.0/70.0/70.0 |") for line in lines)
     assert any(line.startswith("| P3 (sigma 0.1, colour) | this project | 80.0/80.0/80.0/80.0 |") for line in lines)
+    assert any(line.startswith("| P3 (no concept spread) | this project | 60.0/60.0/60.0/60.0 |") for line in lines)
     adi = (tmp_path / "adi.md").read_text()
     assert "P3 (sigma 0.1) mean ADI" in adi and "colour" not in adi  # ADI does not depend on the distance
 
