@@ -129,4 +129,3 @@ def folder_lock(path: str | Path, command: str) -> Iterator[None]:
         yield
     finally:
         handle.close()
-

@@ -91,29 +91,24 @@ def check_image_output(path: str | Path) -> Path:
 
 def write_image(path: str | Path, image: np.ndarray) -> Path:
     """Write a float (H, W, 3) image in [0, 1] as its suffix says: 8-bit PNG or JPEG (quality 95)."""
-    from PIL import Image
-
     path = check_image_output(path)
-    image = np.asarray(image)
-    if image.ndim != 3 or image.shape[2] != 3:
-        raise ImageError(f"{path}: can only write (H, W, 3) images, got shape {image.shape}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as temporary:
-        Image.fromarray(to_uint8(image)).save(temporary, format=IMAGE_FORMATS[path.suffix.lower()], quality=95)
-    return path
+    return _save(path, image, IMAGE_FORMATS[path.suffix.lower()])
 
 
 def write_png(path: str | Path, image: np.ndarray) -> Path:
-    """Write a float (H, W, 3) image in [0, 1] as an 8-bit PNG (atomically)."""
+    """Write a float (H, W, 3) image in [0, 1] as an 8-bit PNG (atomically), whatever the name."""
+    return _save(Path(path), image, "PNG")
+
+
+def _save(path: Path, image: np.ndarray, format: str) -> Path:
     from PIL import Image
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3:
         raise ImageError(f"{path}: can only write (H, W, 3) images, got shape {image.shape}")
+    path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as temporary:
-        Image.fromarray(to_uint8(image)).save(temporary, format="PNG")
+        Image.fromarray(to_uint8(image)).save(temporary, format=format, **({"quality": 95} if format == "JPEG" else {}))
     return path
 
 
