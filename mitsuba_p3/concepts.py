@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import log_softmax
 
-from .errors import MitsubaP3Error
+from .errors import MitsubaP3Error, check_counts
 from .shapes import SHAPES
 
 CONTINUOUS = ("scale", "colour", "ambient", "diffuse", "specular", "shininess")
@@ -68,10 +68,10 @@ class DistanceConfig:
         if unknown or not self.properties:
             raise MitsubaP3Error(f"distance properties must be a non-empty subset of {PROPERTIES}; "
                                  f"got {tuple(self.properties)}")
-        if not isinstance(self.spread_shots, int) or isinstance(self.spread_shots, bool) or self.spread_shots < 0 \
-                or self.spread_shots == 1:
-            raise MitsubaP3Error(f"spread_shots must be 0 (no concept spread) or 2 or more train images per class; "
-                                 f"got {self.spread_shots!r}")
+        check_counts(self, {"spread_shots": 0})
+        if self.spread_shots == 1:
+            raise MitsubaP3Error("spread_shots must be 0 (no concept spread) or 2 or more train images per class "
+                                 "(a within-class spread needs two); got 1")
 
     @property
     def continuous(self) -> tuple:

@@ -19,8 +19,9 @@ import numpy as np
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.concepts import PROPERTIES, DistanceConfig, parse_properties
 from mitsuba_p3.errors import MitsubaP3Error
-from mitsuba_p3.evaluate import (CachedPosterior, EvaluationConfig, classify_episodes, feasible_settings,
-                                 markdown_table, posterior_path, setting_name)
+from mitsuba_p3.evaluate import (CachedPosterior, EvaluationConfig, classify_episodes, markdown_table,
+                                 posterior_path, setting_name)
+from mitsuba_p3.evaluate.metrics import test_settings
 from mitsuba_p3.evaluate.run import run_spread
 
 
@@ -55,8 +56,7 @@ def main() -> None:
         subsets = [("all (paper)", PROPERTIES)]
         subsets += [(f"all but {p}", tuple(q for q in PROPERTIES if q != p)) for p in PROPERTIES]
         subsets += [(f"{p} only", (p,)) for p in PROPERTIES]
-    fewest = min(len(dataset.shots_of(c)) for c in dataset.classes("test"))
-    settings = feasible_settings(len(dataset.classes("test")), fewest)
+    settings = test_settings(dataset)
     rows = []
     for label, properties in subsets:
         config = EvaluationConfig(episodes=args.episodes, distance=replace(distance, properties=properties))

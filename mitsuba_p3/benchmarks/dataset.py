@@ -50,10 +50,14 @@ class Shot:
         return self.cls.name
 
 
+def _valid_rgb(rgb) -> bool:
+    return isinstance(rgb, list) and len(rgb) == 3 and all(
+        isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 255 for v in rgb)
+
+
 def _class_from(record: dict) -> ClassLabel:
     c = record["class"]
-    rgb = c.get("rgb")
-    srgb = tuple(int(v) for v in rgb) if isinstance(rgb, list) and len(rgb) == 3 else None
+    srgb = tuple(c["rgb"]) if _valid_rgb(c.get("rgb")) else None
     return ClassLabel(str(c["shape"]), str(c["colour"]), str(c["material"]), str(c["size"]), srgb)
 
 
@@ -61,8 +65,7 @@ def _check_class(where: str, record: dict, cls: ClassLabel, problems: list[str])
     """What fit and evaluate will need of a class, checked before they start: a colour they can
     start from, a shape they can score."""
     rgb = record["class"].get("rgb")
-    if rgb is not None and not (isinstance(rgb, list) and len(rgb) == 3
-                                and all(isinstance(v, int) and 0 <= v <= 255 for v in rgb)):
+    if rgb is not None and not _valid_rgb(rgb):
         problems.append(f"{where}: class rgb must be three whole numbers 0-255, got {rgb!r}")
     elif rgb is None and cls.colour not in COLOURS:
         problems.append(f"{where}: colour {cls.colour!r} is not one of CLEVR's ({', '.join(COLOURS)}); "

@@ -51,21 +51,23 @@ def benchmark_check(
     """Validate a data-set folder (every check fit and evaluate make of it) and print a summary (JSON)."""
     from ..benchmarks.dataset import load_dataset
     from ..concepts import DistanceConfig
-    from ..evaluate.metrics import feasible_settings, setting_name
+    from ..evaluate.metrics import setting_name, test_settings
 
     dataset = load_dataset(folder)
     train, test = dataset.classes("train"), dataset.classes("test")
-    fewest = min((len(dataset.shots_of(c)) for c in test), default=0)
-    settings = [setting_name(n, k) for n, k in feasible_settings(len(test), fewest)] if test else []
-    spread = any(len(dataset.shots_of(c)) >= 2 for c in train)
+    settings = [setting_name(n, k) for n, k in test_settings(dataset)]
+    if not DistanceConfig.spread_shots:
+        spread = "off"
+    elif any(len(dataset.shots_of(c)) >= 2 for c in train):
+        spread = "from this data set's train classes"
+    else:
+        spread = "needs --spread-from RUN (no train class has 2 images) or --spread-shots 0"
     typer.echo(json.dumps({
         "folder": str(folder), "variant": dataset.variant, "images": len(dataset), "train_classes": len(train),
         "test_classes": len(test),
         "fit": "ready" if train else "no train images: fit a model on another data set and pass --model",
         "evaluate": settings or "no few-shot setting: it needs 5 test classes with 2 or more images each",
-        "concept_spread": ("from this data set's train classes" if spread else
-                           "needs --spread-from RUN (no train class has 2 images) or "
-                           f"--spread-shots 0" if DistanceConfig.spread_shots else "off"),
+        "concept_spread": spread,
     }, indent=2))
 
 

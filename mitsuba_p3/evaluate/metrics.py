@@ -25,6 +25,13 @@ def feasible_settings(n_classes: int, fewest_shots: int, queries_per_class: int 
     return [(n, k) for n, k in SETTINGS if n <= n_classes and k + queries_per_class <= fewest_shots]
 
 
+def test_settings(dataset: Dataset, queries_per_class: int = 1) -> list[tuple[int, int]]:
+    """The settings a data set's test classes fill (:func:`feasible_settings` of its smallest class)."""
+    test = dataset.classes("test")
+    fewest = min((len(dataset.shots_of(c)) for c in test), default=0)
+    return feasible_settings(len(test), fewest, queries_per_class)
+
+
 def interval95(values) -> tuple[float, float]:
     """Mean and the half-width of its 95% normal-approximation interval."""
     values = np.asarray(values, np.float64)

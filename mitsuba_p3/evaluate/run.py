@@ -15,8 +15,8 @@ from ..fit.attributes import rules_for
 from ..fit.model import FittedModel
 from .config import EvaluationConfig
 from .jobs import CachedPosterior, check_run, check_scheduler, compute_posteriors, posterior_path
-from .metrics import (accuracy_of, attribute_recovery, classify_episodes, feasible_settings, pose_errors, pose_summary,
-                      setting_name)
+from .metrics import (accuracy_of, attribute_recovery, classify_episodes, pose_errors, pose_summary, setting_name,
+                      test_settings)
 from .tables import tables_dir, write_tables
 
 
@@ -38,6 +38,17 @@ def spread_file(run_dir: Path, likelihood: str, per_class: int) -> Path:
     return Path(run_dir) / f"spread-{likelihood}-{per_class}.json"
 
 
+def _borrowed_spread(dataset: Dataset, run_dir: Path, likelihood: str, per_class: int,
+                     spread_from: Path | None) -> Path:
+    """The spread file a data set without train classes takes (from ``spread_from``, else its own run)."""
+    source = spread_file(spread_from or run_dir, likelihood, per_class)
+    if not source.is_file():
+        raise EvaluationError(f"{dataset.root} has no train classes to fit the concept spread on: pass "
+                              "--spread-from RUN, the evaluation of the model's own benchmark with the same "
+                              f"settings (it holds {source.name}), or --spread-shots 0")
+    return source
+
+
 def run_spread(dataset: Dataset, run_dir: Path, likelihood: str, config: EvaluationConfig,
                spread_from: Path | None = None) -> ConceptSpread | None:
     """The concept spread of a run's cached train posteriors (written to RUN/spread-LIKELIHOOD-N.json),
@@ -47,12 +58,8 @@ def run_spread(dataset: Dataset, run_dir: Path, likelihood: str, config: Evaluat
     if not per_class:
         return None
     if not dataset.classes("train"):
-        source = spread_file(spread_from or run_dir, likelihood, per_class)
-        if not source.is_file():
-            raise EvaluationError(f"{dataset.root} has no train classes to fit the concept spread on: pass "
-                                  "--spread-from RUN, the evaluation of the model's own benchmark with the same "
-                                  f"settings (it holds {source.name}), or --spread-shots 0")
-        spread = ConceptSpread.from_json(json.loads(source.read_text()))
+        spread = ConceptSpread.from_json(json.loads(_borrowed_spread(dataset, run_dir, likelihood, per_class,
+                                                                     spread_from).read_text()))
         atomic_json(spread_file(run_dir, likelihood, per_class), spread.to_json())
         return spread
     programs = {name: [CachedPosterior.load(posterior_path(run_dir, likelihood, shot.index),
@@ -88,11 +95,10 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
     config = config or EvaluationConfig()
     dataset = load_dataset(dataset_dir)
     run_dir = Path(run_dir)
-    fewest = min(len(dataset.shots_of(c)) for c in dataset.classes("test")) if dataset.classes("test") else 0
-    settings = feasible_settings(len(dataset.classes("test")), fewest, config.queries_per_class)
+    settings = test_settings(dataset, config.queries_per_class)
     if not settings:
-        raise EvaluationError(f"{dataset.root}: {len(dataset.classes('test'))} test classes with at least {fewest} "
-                              f"images each fill none of the few-shot settings (5 or 10 classes, 1 or 5 supports "
+        raise EvaluationError(f"{dataset.root}: its {len(dataset.classes('test'))} test classes fill none of the "
+                              "few-shot settings (5 or 10 classes, 1 or 5 supports "
                               f"and {config.queries_per_class} query each)")
     train = [len(dataset.shots_of(c)) for c in dataset.classes("train")]
     if config.distance.spread_shots and train and not any(n >= 2 for n in train):
@@ -100,8 +106,7 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
                               "images; add them, or pass --spread-shots 0 for the paper's programs")
     if config.distance.spread_shots and not train:
         for likelihood in config.likelihoods:
-            if not spread_file(spread_from or run_dir, likelihood, config.distance.spread_shots).is_file():
-                run_spread(dataset, run_dir, likelihood, config, spread_from)       # raises, naming the fix
+            _borrowed_spread(dataset, run_dir, likelihood, config.distance.spread_shots, spread_from)
     rules = rules_for(FittedModel(model_dir), dataset)            # the model folder is checked before any work
     if config.dask:
         check_scheduler(config.dask)

@@ -71,11 +71,10 @@ def memory_limit() -> float:
     return 0.8 * available
 
 
-def check_memory(pixels: int, kind: str = "image") -> None:
+def check_memory(pixels: int, limit: float, kind: str = "image") -> None:
     """Refuse, before Dr.Jit allocates it, a render (batch x height x width ``pixels``) whose estimated
-    memory exceeds :func:`memory_limit`."""
+    memory exceeds ``limit`` bytes (:func:`memory_limit`)."""
     need = pixels * BYTES_PER_PIXEL[kind]
-    limit = memory_limit()
     if need > limit:
         raise SceneError(f"rendering {pixels:,} pixels ({kind}) needs about {need / 2 ** 30:.1f} GB, over the "
                          f"limit of {limit / 2 ** 30:.1f} GB; use a smaller resolution or batch, or set "
@@ -161,7 +160,8 @@ class Renderer:
         self.scene = scene
         self.height = int(height or scene.camera.height)
         self.width = int(width or scene.camera.width)
-        check_memory(self.height * self.width)        # one image's rays, before any is allocated
+        self.memory_limit = memory_limit()            # read once: renders are the samplers' hot path
+        check_memory(self.height * self.width, self.memory_limit)   # one image's rays, before any is allocated
         self.shadows = scene.shadows if shadows is None else bool(shadows)
         self.floor_half_size = float(scene.floor.half_size)
         self.params = check_params(scene.params())  # the scene's values; render() overrides some

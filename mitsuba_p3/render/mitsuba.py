@@ -117,7 +117,7 @@ class MitsubaRenderer(Renderer):
         """Render on Dr.Jit arrays; returns a (B, H, W, 3) tensor that AD can differentiate."""
         # Renders may run on another thread than the one that made this renderer (JAX's
         # pure_callback runs on XLA's thread): a fresh Dr.Jit scope orders their variables.
-        check_memory(p.batch * self.height * self.width)
+        check_memory(p.batch * self.height * self.width, self.memory_limit)
         dr.detail.new_scope(dr.JitBackend.LLVM)
         self._set_pattern(p)
         colour = self._shade(p)
@@ -139,7 +139,7 @@ class MitsubaRenderer(Renderer):
         weights at this pose, class and shininess (:meth:`PosteriorModel.material_move`)."""
         merged = self.merged(params)
         p = self._to_drjit_cached(merged)
-        check_memory(p.batch * self.height * self.width, "bases")
+        check_memory(p.batch * self.height * self.width, self.memory_limit, "bases")
         dr.detail.new_scope(dr.JitBackend.LLVM)  # see render_drjit
         self._set_pattern(p)
         parts = self._shade(p, bases=True)
