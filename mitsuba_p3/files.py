@@ -52,6 +52,15 @@ def claim_output_folder(path: str | Path, own: str | tuple, command: str) -> Pat
     return path
 
 
+def file_digest(path: str | Path) -> str:
+    """SHA-256 of a file's bytes ("missing" for no file): what a record keeps to notice a file rewritten
+    in place."""
+    import hashlib
+
+    path = Path(path)
+    return hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else "missing"
+
+
 @contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """A temporary path to write; renamed to ``path`` when the block ends without error."""

@@ -60,27 +60,35 @@ class ReproduceConfig:
 
     benchmarks: tuple = COLUMNS
     evaluation: EvaluationConfig = field(default_factory=lambda: EvaluationConfig(sampler=PRESET))
+    resolution: tuple | None = None    # (H, W) of generated benchmarks; None: the benchmark's default
 
     def __post_init__(self):
         object.__setattr__(self, "benchmarks", tuple(self.benchmarks))
+        if self.resolution is not None:
+            object.__setattr__(self, "resolution", tuple(int(v) for v in self.resolution))
+            if len(self.resolution) != 2 or min(self.resolution) < 8:
+                raise ConfigError(f"resolution must be (height, width), each at least 8; got {self.resolution}")
         unknown = [b for b in self.benchmarks if b not in VARIANTS]
         if unknown or not self.benchmarks or len(set(self.benchmarks)) != len(self.benchmarks):
             raise ConfigError(f"benchmarks must be distinct names from {', '.join(VARIANTS)}; "
                               f"got {', '.join(self.benchmarks) or 'none'}")
 
 
-def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] | None = None) -> tuple[Path, Path]:
-    """The benchmark folder and the model folder evaluation uses (made when missing)."""
+def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] | None = None,
+            resolution: tuple[int, int] | None = None) -> tuple[Path, Path]:
+    """The benchmark folder and the model folder evaluation uses (made when missing; generated at
+    ``resolution``, (H, W), or the benchmark's default)."""
     from .benchmarks.generate import generate
     from .fit.model import fit_model
 
     folder = data / variant
-    generate(variant, folder, progress=(lambda d, t: progress(f"{variant}: generate", d, t)) if progress else None)
+    generate(variant, folder, resolution=resolution,
+             progress=(lambda d, t: progress(f"{variant}: generate", d, t)) if progress else None)
     fitted_on = "fsclvr" if variant == "ood" else variant
     model = data / "models" / fitted_on
     if not (model / "model.json").exists():
         if fitted_on != variant:
-            generate(fitted_on, data / fitted_on)
+            generate(fitted_on, data / fitted_on, resolution=resolution)
         fit_model(data / fitted_on, model,
                   progress=(lambda stage, d, t, _: progress(f"{fitted_on}: fit {stage}", d, t)) if progress else None)
     return folder, model
@@ -99,7 +107,7 @@ def reproduce(data: str | Path, out: str | Path, config: ReproduceConfig | None 
     minutes = {}
     for variant in config.benchmarks:
         start = time.perf_counter()
-        folder, model = prepare(data, variant, progress)
+        folder, model = prepare(data, variant, progress, config.resolution)
         prepared = (time.perf_counter() - start) / 60
         start = time.perf_counter()
         noise = evaluation.noise if evaluation.noise != "paper" and evaluation.sigma is None else evaluation.sigma

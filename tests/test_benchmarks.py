@@ -223,11 +223,15 @@ def test_reader_reports_every_problem(tiny_fsclvr, tmp_path):
     images[8]["file"] = "../elsewhere.png"                              # by ../
     (folder / "link.png").symlink_to(outside)
     images[9]["file"] = "link.png"                                      # by a symbolic link
+    (tmp_path / "notes.txt").write_text("not an image")
+    images[10]["file"] = str(tmp_path / "notes.txt")                   # a non-image outside the folder
     _save(folder, labels)
     with pytest.raises(DatasetError) as error:
         load_dataset(folder)
     message = str(error.value)
-    assert "9 problem(s)" in message and message.count("inside the data-set folder") == 3
+    # one line per kind of problem, naming the first two places
+    assert "10 problem(s)" in message and message.count("inside the data-set folder") == 1
+    assert "../elsewhere.png" in message and "and 2 more: the image path must be relative" in message
     for needle in ("image file is missing", "unreadable image", "has RGB", "appears twice",
                    "disagrees with x, y, z", "missing or malformed field"):
         assert needle in message

@@ -164,6 +164,12 @@ def test_run_folder_refuses_other_settings(bench, tmp_path):
     dataset = load_dataset(bench / "data")
     check_run(tmp_path, dataset, bench / "model", config)
     check_run(tmp_path, dataset, bench / "model", config)                   # same settings: fine
+    # nothing cached yet (a run that died at its start): the corrected command takes the folder over
+    other = EvaluationConfig(likelihoods=("p3",), sampler=TINY, sigma=0.1)
+    check_run(tmp_path, dataset, bench / "data", other)
+    assert json.loads((tmp_path / "run.json").read_text())["sigma"] == 0.1
+    check_run(tmp_path, dataset, bench / "model", config)
+    compute_posteriors(dataset, bench / "model", tmp_path, config, shots=[dataset.split("test")[0].index])
     with pytest.raises(EvaluationError, match="another model"):             # cached posteriors of another model
         check_run(tmp_path, dataset, bench / "data", config)
     with pytest.raises(EvaluationError, match="sigma"):                     # another likelihood sigma
@@ -171,6 +177,31 @@ def test_run_folder_refuses_other_settings(bench, tmp_path):
     changed = EvaluationConfig(likelihoods=("p3",), sampler=SamplerConfig(**{**asdict(TINY), "steps": 31}))
     with pytest.raises(EvaluationError, match="other settings"):
         evaluate(bench / "data", bench / "model", tmp_path, changed)
+
+
+def test_a_model_or_data_set_changed_in_place_is_noticed(bench, tmp_path):
+    """A model fitted again into the same folder (or labels rewritten) no longer matches the cached
+    posteriors: the run refuses it rather than reuse them; and fit refuses to mix a second data set into
+    a model folder."""
+    import shutil
+
+    from mitsuba_p3.errors import FitError
+
+    model, data = tmp_path / "model", tmp_path / "data"
+    shutil.copytree(bench / "model", model)
+    shutil.copytree(bench / "data", data)
+    config = EvaluationConfig(likelihoods=("p3",), sampler=TINY, episodes=2)
+    run = tmp_path / "run"
+    check_run(run, load_dataset(data), model, config)
+    (run / "posteriors" / "p3").mkdir(parents=True)
+    (run / "posteriors" / "p3" / "00000.npz").write_bytes(b"")        # a cached posterior
+    check_run(run, load_dataset(data), model, config)
+    info = json.loads((model / "model.json").read_text())
+    (model / "model.json").write_text(json.dumps({**info, "refitted": True}))
+    with pytest.raises(EvaluationError, match="another model .*changed since"):
+        check_run(run, load_dataset(data), model, config)
+    with pytest.raises(FitError, match="holds a model fitted to"):
+        fit_model(data, bench / "model")                            # the copy is another data set
 
 
 def test_sigma_reaches_the_cached_posteriors(bench, tmp_path):

@@ -212,6 +212,11 @@ def test_material_gibbs_moves_explain_the_image(fitted, observed):
     assert error(state) < 0.25 * start
     # the log density the move computes from the material bases is the rendered one
     assert float(state.logdensity) == pytest.approx(float(model.logdensity(state.position)), abs=1e-2)
+    # and so is the log likelihood the tempered samplers take from the same bases
+    scored = jax.jit(lambda key, s: model.core.scored_material_move(key, s, model.observation, 0.5))
+    tempered = RWState(state.position, model.prior.log_prob(state.position) + 0.5 * model.log_likelihood(state.position))
+    moved, _, loglik = scored(jax.random.PRNGKey(99), tempered)
+    assert float(loglik) == pytest.approx(float(model.log_likelihood(moved.position)), abs=1e-2)
     colour = np.asarray(model.prior.constrain(state.position)["colour"])
     assert np.argmax(colour) == 0  # red, like the truth
 
@@ -239,13 +244,15 @@ def test_sampler_weighs_modes_correctly(fitted):
         squared = jnp.sum((z - centres) ** 2, axis=1)
         return jax.scipy.special.logsumexp(np.log(weights) - 0.5 * squared / widths ** 2 - 15 * np.log(widths))
 
-    config = SamplerConfig(chains=12, steps=3000, burn_in=100, tune_rounds=4, tune_steps=100,
+    # 48 chains: with 12, which modes the few chains found during tuning moved the frequencies by
+    # 0.05 (sd over seeds; one seed in seven missed by 0.08); with 48 the sd is 0.008
+    config = SamplerConfig(chains=48, steps=1000, burn_in=100, tune_rounds=4, tune_steps=100,
                            symmetry_moves=False, material_gibbs=False, walks_per_step=1, init_candidates=200,
                            mode_jump_probability=0.3, seed=1)
     run = sample(Target(lambda z, _: logdensity(z), prior.sample, prior.hypothesis, len(HYPOTHESES)), config)
     labels = prior.hypothesis(run.positions.reshape(-1, 15)) // 2
     frequencies = np.bincount(labels, minlength=3) / len(labels)
-    np.testing.assert_allclose(frequencies, weights, atol=0.08)
+    np.testing.assert_allclose(frequencies, weights, atol=0.04)
     assert run.statistics["jumps_accepted"] > 100
 
 
@@ -318,11 +325,22 @@ def test_systematic_resampling_follows_the_weights():
     np.testing.assert_allclose(counts / 256, weights, atol=1 / 256)
 
 
+def test_pooled_evidence_is_the_mean_of_each_hypothesis_runs():
+    """Runs of one hypothesis pool as the log of their mean estimate (each unbiased); a hypothesis
+    with no run in a round keeps the runs it had."""
+    from mitsuba_p3.infer.smc import Rows, SMCState, pooled_evidence
+
+    rows = Rows(np.array([0, 1, 2, 0, 2]), SMCState(None, None, None), np.log([1.0, 5.0, 2.0, 3.0, 4.0]), 1, [])
+    np.testing.assert_allclose(np.exp(pooled_evidence(rows, 3)), [2.0, 5.0, 3.0])
+    assert pooled_evidence(rows, 4)[3] == -np.inf
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("kinds, islands", [(False, 1), (True, 1), (False, 2)])
-def test_smc_runs_every_hypothesis_and_keeps_their_evidence(fitted, tmp_path, kinds, islands):
+@pytest.mark.parametrize("kinds, islands, rounds", [(False, 1, 1), (True, 1, 1), (False, 2, 3)])
+def test_smc_runs_every_hypothesis_and_keeps_their_evidence(fitted, tmp_path, kinds, islands, rounds):
     """On an image the Phong model renders, the SMC tempers every hypothesis (shape classes, or shape x
-    material kind; one run each, or islands pooled) to lambda = 1 (no forced jump), its weights form a
+    material kind; one run each, or islands pooled, over rounds for the open ones) to lambda = 1 (no
+    forced jump), its weights form a
     distribution over the hypotheses, the posterior's classes follow the winning hypotheses, and the
     posterior file keeps each hypothesis's log evidence and weight. (Which hypothesis wins is not asserted: with 8 particles
     the evidence is not yet reliable; scripts/bench_infer.py measures it.)"""
@@ -336,10 +354,15 @@ def test_smc_runs_every_hypothesis_and_keeps_their_evidence(fitted, tmp_path, ki
     # a likelihood as sharp as the fitted ones (sigma 0.03, a power for correlated pixels)
     likelihood = LikelihoodConfig("p3", sigma=0.03, power=0.05, shadows=True)
     posterior = infer_image(fitted, observed, likelihood, SMCConfig(particles=8, mcmc_steps=1, final_steps=1,
-                                                                    draws=200, kinds=kinds, islands=islands))
+                                                                    draws=200, kinds=kinds, islands=islands,
+                                                                    rounds=rounds, decided=0.999))
     attrs = posterior.idata.posterior.attrs
     hypotheses = json.loads(attrs["hypotheses"])
     assert list(hypotheses) == list(HYPOTHESES if kinds else SHAPES)
+    # every hypothesis runs once per island in round 1; later rounds only add runs of open ones
+    runs = np.array([v["runs"] for v in hypotheses.values()])
+    assert np.all(runs >= islands) and runs.sum() <= islands * len(runs) * rounds
+    assert 1 <= int(attrs["rounds"]) <= rounds
     assert not json.loads(str(attrs["forced"]).lower())
     weights = np.array([v["weight"] for v in hypotheses.values()])
     assert weights.sum() == pytest.approx(1.0) and np.all(weights >= 0)

@@ -133,6 +133,7 @@ def test_memory_flat_over_thousands_of_renders(scene):
     ({"colour": np.array([np.nan, 0.5, 0.5], np.float32)}, "NaN"),
     ({"shift": np.zeros(3, np.float32)}, "shape"),
     ({"kappa": np.int32(5)}, "kappa"),
+    ({"kappa": np.float32(0.5)}, "whole number"),
     ({"scale": np.array([0.01, -0.01, 0.01], np.float32)}, "positive"),
     ({"light_intensity": np.ones((2, 3), np.float32)}, "light_position"),
     ({"colur": np.ones(3, np.float32)}, "unknown renderer parameter"),

@@ -64,3 +64,18 @@ def test_translation_figure_survives_draws_that_do_not_move(tmp_path, shift):
     from mitsuba_p3.plots import translation_contours
 
     assert translation_contours(shift, tmp_path / "t.png").stat().st_size > 1000
+
+
+def test_reproduce_generates_at_the_asked_resolution(tmp_path, monkeypatch):
+    """``--resolution`` reaches every generated benchmark (ood's fsclvr too); a bad one is refused up front."""
+    import mitsuba_p3.benchmarks.generate as generate_module
+    from mitsuba_p3.errors import ConfigError
+
+    calls = []
+    monkeypatch.setattr(generate_module, "generate", lambda variant, out, **kw: calls.append((variant, kw["resolution"])))
+    monkeypatch.setattr("mitsuba_p3.fit.model.fit_model", lambda *a, **kw: calls.append(("fit", None)))
+    folder, model = tables.prepare(tmp_path, "ood", resolution=(120, 160))
+    assert (folder, model) == (tmp_path / "ood", tmp_path / "models" / "fsclvr")
+    assert calls == [("ood", (120, 160)), ("fsclvr", (120, 160)), ("fit", None)]
+    with pytest.raises(ConfigError, match="resolution"):
+        tables.ReproduceConfig(resolution=(4, 160))

@@ -126,6 +126,20 @@ class Dataset:
         return self._cache[index]
 
 
+def _grouped(problems: list[str]) -> list[str]:
+    """One line per kind of problem: ``a.png, b.png and 10 more: the problem`` (each problem reads
+    ``WHERE: WHAT``), in the order first met."""
+    groups: dict[str, list[str]] = {}
+    for problem in problems:
+        where, _, what = problem.partition(": ")
+        groups.setdefault(what, []).append(where)
+    lines = []
+    for what, places in groups.items():
+        more = f" and {len(places) - 2} more" if len(places) > 3 else ""
+        lines.append(f"{', '.join(places[:2] if more else places)}{more}: {what}")
+    return lines
+
+
 def _inside(root: Path, relative) -> bool:
     """Whether a path from labels.json is relative and stays in the data-set folder (symbolic links
     followed): a data set never reads files elsewhere."""
@@ -226,8 +240,8 @@ def load_dataset(root: str | Path, resolution: tuple[int, int] = INFERENCE_RESOL
 
         height, width = resolution
         for shot in shots:
-            if not shot.file.is_file():
-                continue
+            if not shot.file.is_file() or not _inside(root, str(records[shot.index]["file"])):
+                continue                                      # reported above
             try:
                 with Image.open(shot.file) as im:
                     im.verify()
@@ -239,7 +253,8 @@ def load_dataset(root: str | Path, resolution: tuple[int, int] = INFERENCE_RESOL
                 problems.append(f"{shot.file.relative_to(root)}: aspect {w}x{h} does not match "
                                 f"{width}x{height}")
     if problems:
-        shown = "\n  ".join(problems[:MAX_REPORTED])
-        more = f"\n  ... and {len(problems) - MAX_REPORTED} more" if len(problems) > MAX_REPORTED else ""
+        lines = _grouped(problems)
+        shown = "\n  ".join(lines[:MAX_REPORTED])
+        more = f"\n  ... and {len(lines) - MAX_REPORTED} more" if len(lines) > MAX_REPORTED else ""
         raise DatasetError(f"{root}: {len(problems)} problem(s) in the data set:\n  {shown}{more}")
     return Dataset(root, {k: v for k, v in header.items() if k != "images"}, shots, rgb, resolution)

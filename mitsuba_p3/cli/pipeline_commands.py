@@ -12,7 +12,7 @@ from ..concepts import DistanceConfig
 from ..evaluate.config import PRESET
 from ..infer.mcmc import SamplerConfig
 from ..infer.smc import SMCConfig
-from .app import app, phase_progress_bar, progress_bar, sampler_option
+from .app import app, parse_resolution, phase_progress_bar, progress_bar, sampler_option
 
 
 NOISE_HELP = ("Noise model: fitted (the Gaussian fitted to the model's train residuals, with hard shadows), "
@@ -196,6 +196,8 @@ def reproduce(
     distance: str = typer.Option("all", help="Distance terms: 'all' or e.g. colour+class (tables in "
                                              "runs/V/distance-TERMS; the posteriors are shared)."),
     spread_shots: int = typer.Option(DistanceConfig.spread_shots, help=SPREAD_HELP),
+    resolution: Optional[str] = typer.Option(None, help="HxW of benchmarks generated here (default: 480x640); "
+                                                        "folders already made must match it."),
 ) -> None:
     """Generate, fit and evaluate every benchmark, then write the paper's accuracy and ADI tables."""
     import time
@@ -213,8 +215,9 @@ def reproduce(
                                   sigma=sigma, noise=noise, sampler=sampler, episodes=episodes, jobs=jobs,
                                   distance=DistanceConfig(properties=parse_properties(distance),
                                                           spread_shots=spread_shots))
+    height, width = parse_resolution(resolution)
     config = ReproduceConfig(benchmarks=tuple(b.strip() for b in benchmarks.split(",") if b.strip()),
-                             evaluation=evaluation)
+                             evaluation=evaluation, resolution=(height, width) if height else None)
     start = time.perf_counter()
     bar, track = phase_progress_bar("reproduce")
     with bar:

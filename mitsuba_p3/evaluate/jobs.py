@@ -22,7 +22,7 @@ import numpy as np
 from ..benchmarks.dataset import Dataset, load_dataset
 from ..concepts import CONTINUOUS, ProtoProgram
 from ..errors import EvaluationError
-from ..files import atomic_json, atomic_npz, claim_output_folder
+from ..files import atomic_json, atomic_npz, claim_output_folder, file_digest
 from .config import EvaluationConfig
 
 RUN_FORMAT = "mitsuba-p3-evaluation"
@@ -171,9 +171,14 @@ def cached_train_programs(dataset: Dataset, run_dir: Path, likelihood: str,
 
 
 def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: EvaluationConfig) -> None:
-    """Create RUN/run.json, or refuse a folder made with other settings or another data set."""
+    """Create RUN/run.json, or refuse a folder whose cached posteriors were made with other settings or
+    from another data set or model. A run that died before caching its first posterior holds nothing
+    to protect: its record is replaced, so the corrected command simply starts again."""
     record = {"format": RUN_FORMAT, "version": 1, "dataset": str(Path(dataset.root).resolve()),
-              "model": str(Path(model_dir).resolve()), **config.cache_key()}
+              "model": str(Path(model_dir).resolve()), **config.cache_key(),
+              # the files' contents too: a model fitted again, or labels rewritten, in the same folder
+              "model_digest": file_digest(Path(model_dir) / "model.json"),
+              "labels_digest": file_digest(Path(dataset.root) / "labels.json")}
     # a run folder may already hold baselines scored on the same episodes (mitsuba-p3 baseline evaluate)
     claim_output_folder(run_dir, ("run.json", "baselines"), "mitsuba-p3 evaluate")
     path = run_dir / "run.json"
@@ -184,11 +189,17 @@ def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: Evaluati
             previous = None
         if not isinstance(previous, dict) or previous.get("format") != RUN_FORMAT:
             raise EvaluationError(f"{path} is not a {RUN_FORMAT} record; use another --out folder")
-        for source in ("dataset", "model"):
-            if previous.get(source) != record[source]:
-                raise EvaluationError(f"{run_dir} holds posteriors of another {source} ({previous.get(source)}); "
-                                      "use another --out folder or remove it")
-        changed = [k for k in record if k not in ("dataset", "model") and previous.get(k) != record[k]]
+        if not any((run_dir / "posteriors").glob("*/*.npz")):
+            atomic_json(path, record)
+            return
+        for source, digest in (("dataset", "labels_digest"), ("model", "model_digest")):
+            # a record from before the digests were kept is checked by the folder's name alone
+            moved = previous.get(source) != record[source]
+            if moved or previous.get(digest, record[digest]) != record[digest]:
+                raise EvaluationError(f"{run_dir} holds posteriors of another {source} ({previous.get(source)}"
+                                      f"{'' if moved else ', changed since'}); use another --out folder or remove it")
+        changed = [k for k in record if k not in ("dataset", "model", "model_digest", "labels_digest")
+                   and previous.get(k) != record[k]]
         if changed:
             raise EvaluationError(f"{run_dir} holds an evaluation with other settings ({', '.join(changed)}); "
                                   "use another --out folder or remove it")

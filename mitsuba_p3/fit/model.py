@@ -126,6 +126,19 @@ class FittedModel:
         return Path(self.info["dataset"]["root"])
 
 
+def _check_same_dataset(root: Path, dataset: Dataset) -> None:
+    """A model folder takes more stages (or a stage again) of the data set it was fitted to, never
+    another data set's: that would mix two data sets in one model."""
+    path = root / "model.json"
+    try:
+        recorded = json.loads(path.read_text())["dataset"]["root"] if path.is_file() else None
+    except (ValueError, KeyError, TypeError):
+        raise FitError(f"{path} is damaged; give another --out folder or delete {root}") from None
+    if recorded is not None and recorded != str(dataset.root.resolve()):
+        raise FitError(f"{root} holds a model fitted to {recorded}; give another --out folder for "
+                       f"{dataset.root} (or delete {root})")
+
+
 def _record(root: Path, dataset: Dataset, stage: str, figures: dict) -> None:
     path = root / "model.json"
     info = json.loads(path.read_text()) if path.is_file() else {}
@@ -189,6 +202,7 @@ def fit_model(dataset_dir: str | Path, out: str | Path, stages: Sequence[str] = 
     scene_config = scene_config or SceneOptConfig()
     dataset = load_dataset(dataset_dir, resolution=tuple(scene_config.resolution))
     root = claim_output_folder(out, MODEL_FILES, "mitsuba-p3 fit")
+    _check_same_dataset(root, dataset)
 
     if "scene" in stages:
         start = time.perf_counter()

@@ -222,6 +222,13 @@ class PosteriorCore:
         pass ``tempering`` and the prior (default: :meth:`Prior.log_prob`); ``state.logdensity`` is
         then that target's value.
         """
+        state, accepted, _ = self.scored_material_move(key, state, observation, tempering, log_prior)
+        return state, accepted
+
+    def scored_material_move(self, key, state, observation, tempering=1.0, log_prior=None):
+        """:meth:`material_move`, also returning log p(I | z) of the new state, computed from the
+        bases it rendered: a tempered sampler needs the likelihood apart from the prior, and this
+        saves it a render per move."""
         import jax
         import jax.numpy as jnp
 
@@ -237,7 +244,9 @@ class PosteriorCore:
         target = (tempering, log_prior or self.prior.log_prob)
         state, colour_ok = self._colour_move(k_colour, state, bases, gram, observation, target)
         state, weights_ok = self._weights_move(k_weights, state, bases, gram, observation, target)
-        return state, colour_ok & weights_ok
+        loglik = score(observation, self._image_from_bases(bases, state.position)[None], self.config,
+                       self.channels)[0]
+        return state, colour_ok & weights_ok, loglik
 
     def _image_from_bases(self, bases, z):
         """The image at position z whose pose, class and shininess gave ``bases`` (H, W, 4, 3)."""

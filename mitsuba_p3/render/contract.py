@@ -111,6 +111,9 @@ def check_params(params: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
             continue
         raise SceneError(f"parameter {key!r} must have shape {base} or (B, *{base}), got {shape}")
     out: dict[str, np.ndarray] = {}
+    raw_kappa = np.asarray(params["kappa"])
+    if raw_kappa.dtype.kind not in "iub" and not np.all(np.isfinite(raw_kappa) & (raw_kappa == np.round(raw_kappa))):
+        raise SceneError(f"parameter 'kappa' is a class index and must be a whole number, got {raw_kappa.tolist()}")
     for key, base in OBJECT_SHAPES.items():
         dtype = np.int32 if key == "kappa" else np.float32
         value = np.asarray(params[key], dtype=dtype)

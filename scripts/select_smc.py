@@ -1,0 +1,78 @@
+"""How should the SMC spend its renders? Settings compared on *train* images, side by side in one run.
+
+For evenly spaced train images, runs :func:`~mitsuba_p3.infer.smc.sample_smc` under the
+model's fitted Gaussian noise with each setting of ``--configs`` (a JSON object: name ->
+:class:`~mitsuba_p3.infer.smc.SMCConfig` fields) and prints, per setting:
+
+- ``shape``: the share of images whose most probable shape hypothesis is the true shape;
+- ``log_p_true``: the mean log posterior probability of the true shape (a proper score:
+  a confidently wrong answer costs many nats);
+- ``mean_log_z_true``: the mean log evidence of the true shape's hypothesis. The evidence
+  estimate is biased low when the runs miss the object's pose, so on the same images a
+  higher value means a better search;
+- ``seconds``: median and mean wall-clock seconds per image.
+
+No test image is used. The default's choice (5 random-walk sweeps per material update,
+against 3) was made with:
+
+    python scripts/select_smc.py --dataset data/fsclvr-lo --model data/models/fsclvr-lo --images 30 \\
+        --configs '{"walk3": {"mcmc_steps": 3, "material_every": 3}, "walk5": {}}'
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+from mitsuba_p3.benchmarks.dataset import load_dataset
+from mitsuba_p3.fit.model import FittedModel
+from mitsuba_p3.infer.model import PosteriorCore
+from mitsuba_p3.infer.posterior import default_likelihood
+from mitsuba_p3.infer.smc import SMCConfig, sample_smc
+from mitsuba_p3.shapes import SHAPES
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--dataset", default="data/fsclvr")
+    parser.add_argument("--model", default="data/models/fsclvr")
+    parser.add_argument("--images", type=int, default=30, help="evenly spaced train images")
+    parser.add_argument("--configs", default='{"default": {}}', help="JSON: name -> SMCConfig fields")
+    parser.add_argument("--noise", default="fitted", help="the model's noise model: fitted or robust")
+    args = parser.parse_args()
+
+    configs = {name: SMCConfig(**fields) for name, fields in json.loads(args.configs).items()}
+    dataset = load_dataset(args.dataset)
+    fitted = FittedModel(args.model)
+    core = PosteriorCore(fitted, default_likelihood(fitted, "p3", noise=args.noise), "mitsuba", *dataset.resolution)
+    shots = dataset.split("train")
+    shots = [shots[i] for i in np.linspace(0, len(shots) - 1, min(args.images, len(shots))).astype(int)]
+    # compile once, so that the first setting's first image is not charged for it
+    sample_smc(core, core.observe(dataset.image(shots[0])), SMCConfig(particles=4, max_temperatures=2))
+    report = {"dataset": args.dataset, "images": len(shots), "noise": args.noise}
+    for name, config in configs.items():
+        right, log_true, z_true, seconds = [], [], [], []
+        for i, shot in enumerate(shots):
+            start = time.perf_counter()
+            run = sample_smc(core, core.observe(dataset.image(shot)), config)
+            seconds.append(time.perf_counter() - start)
+            weights = {shape: 0.0 for shape in SHAPES}
+            for hypothesis, value in run.statistics["hypotheses"].items():
+                weights[hypothesis.split("/")[0]] += value["weight"]
+            right.append(max(weights, key=weights.get) == shot.cls.shape)
+            log_true.append(float(np.log(max(weights[shot.cls.shape], 1e-12))))
+            z_true.append(max(v["log_evidence"] for h, v in run.statistics["hypotheses"].items()
+                              if h.split("/")[0] == shot.cls.shape))
+            print(f"{name} {i + 1}/{len(shots)} {shot.class_name}: {'ok' if right[-1] else 'WRONG'} "
+                  f"{seconds[-1]:.1f} s", flush=True)
+        report[name] = {"shape": float(np.mean(right)), "log_p_true": float(np.mean(log_true)),
+                        "mean_log_z_true": float(np.mean(z_true)),
+                        "seconds": {"median": float(np.median(seconds)), "mean": float(np.mean(seconds))},
+                        "config": {k: v for k, v in vars(config).items() if v != getattr(SMCConfig(), k)}}
+    print(json.dumps(report, indent=2))
+
+
+if __name__ == "__main__":
+    main()
