@@ -29,7 +29,7 @@ def test_baseline_learns_novel_classes_above_chance(method, iterations, tmp_path
     import jax
 
     config = TrainConfig(method=method, resolution=RES, iterations=iterations, k_shot=1, train_ways=(5,),
-                         checkpoint_every=20, seed=0)
+                         checkpoint_every=20, validation_classes=0, seed=0)
     state = meta_train(_synthetic(0, 20), tmp_path, config)
     model = config.model()
     predict = jax.jit(model.predict, static_argnums=4)
@@ -44,7 +44,8 @@ def test_baseline_learns_novel_classes_above_chance(method, iterations, tmp_path
 
 def test_training_resumes_from_its_checkpoint_and_refuses_other_settings(tmp_path):
     images = _synthetic(0, 12)
-    config = TrainConfig(method="protonets", resolution=RES, iterations=6, train_ways=(5,), checkpoint_every=3)
+    config = TrainConfig(method="protonets", resolution=RES, iterations=6, train_ways=(5,), checkpoint_every=3,
+                         validation_classes=0)
     meta_train(images, tmp_path, config)
     first = Checkpoint.load(tmp_path)
     assert first.iteration == 6 and len(first.curve) == 6
@@ -56,6 +57,34 @@ def test_training_resumes_from_its_checkpoint_and_refuses_other_settings(tmp_pat
         meta_train(images, tmp_path, TrainConfig(**{**config.__dict__, "k_shot": 5}))
     with pytest.raises(BaselineError, match="unknown baseline"):
         TrainConfig(method="siamese")
+
+
+def test_training_stops_when_held_out_classes_stop_improving(tmp_path):
+    """With held-out classes, every checkpoint is scored on the same validation episodes; the best
+    parameters are kept, and training stops after ``patience`` checkpoints without a better score
+    (here the learning rate is zero: nothing can improve, so it stops at the first chance)."""
+    from mitsuba_p3.baselines.train import split_validation
+
+    images = _synthetic(0, 14)
+    train, held = split_validation(images, 6, seed=0)
+    assert len(train) == 8 and len(held) == 6 and not set(train) & set(held)
+    assert split_validation(images, 6, seed=0)[1].keys() == held.keys()        # a fixed choice
+    frozen = TrainConfig(method="protonets", resolution=RES, iterations=50, train_ways=(5,), checkpoint_every=2,
+                         validation_classes=6, validation_episodes=6, patience=2, learning_rate=1e-12)
+    state = meta_train(images, tmp_path, frozen)
+    assert state.stopped and state.iteration == 6 and len(state.validation) == 3
+    assert state.best_iteration == 2 and (tmp_path / "validation.csv").is_file()
+    # a learning network keeps its best checkpoint (the first of the best, on these easy classes)
+    learning = TrainConfig(**{**frozen.__dict__, "learning_rate": 1e-3, "iterations": 20, "patience": 50})
+    state = meta_train(images, tmp_path / "learning", learning)
+    scores = [v[1] for v in state.validation]
+    assert not state.stopped and state.iteration == 20 and len(scores) == 10
+    assert state.best_iteration == state.validation[int(np.argmax(scores))][0]
+    # resumed with more patience, a stopped run trains on
+    more = TrainConfig(**{**frozen.__dict__, "patience": 4})
+    assert meta_train(images, tmp_path, more).iteration == 10
+    with pytest.raises(BaselineError, match="too few"):
+        split_validation(images, 13, seed=0)
 
 
 @pytest.mark.slow

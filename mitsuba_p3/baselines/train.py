@@ -9,6 +9,15 @@ Every ``checkpoint_every`` iterations the parameters, the optimiser state, the
 RNG and the learning curve go to ``DIR/checkpoint.pkl`` (atomic write); a rerun
 resumes from it, and refuses a folder trained with other settings.
 
+**Early stopping.** ``validation_classes`` of the train classes (a fixed, seeded
+choice) are held out of meta-training. At every checkpoint the network is scored
+on the same ``validation_episodes`` episodes of those classes (N-way K-shot over
+the test settings they allow, every remaining shot a query); the best parameters
+so far are kept, and training stops once ``patience`` checkpoints in a row have
+not improved on the best, or at the ``iterations`` cap. Evaluation uses the best
+parameters. So a baseline trains until it stops improving on classes it has not
+seen, not for a budget-sized count (``validation_classes=0`` restores that).
+
 ``evaluate_baseline`` scores the *same* test episodes as P3/NP3
 (:func:`mitsuba_p3.benchmarks.episodes.sample_episodes`, seed 0, one query per
 class) and writes ``RUN/baselines/NAME.json`` for the evaluation tables.
@@ -31,8 +40,8 @@ from ..files import atomic_json, atomic_write
 from .methods import MAML, METHODS
 
 CHECKPOINT_FORMAT = "mitsuba-p3-baseline"
-# Sized for the 2-core machine (the paper used 60K): see the README for the measured times.
-DEFAULT_ITERATIONS = {"protonets": 2000, "maml": 1000}
+# Caps only: training stops earlier once the validation accuracy stops improving (the paper used 60K).
+DEFAULT_ITERATIONS = {"protonets": 20000, "maml": 20000}
 
 
 
@@ -46,7 +55,10 @@ class TrainConfig:
     meta_batch: int = 2
     learning_rate: float = 1e-3
     second_order: bool = False      # MAML only
-    checkpoint_every: int = 100
+    checkpoint_every: int = 100     # and a validation
+    validation_classes: int = 10    # train classes held out for early stopping (0: none, train to the cap)
+    validation_episodes: int = 40   # fixed validation episodes, over the test settings the classes allow
+    patience: int = 10              # checkpoints without a better validation accuracy before stopping
     seed: int = 0
 
     def __post_init__(self):
@@ -55,8 +67,10 @@ class TrainConfig:
         if self.resolution < 16:
             raise BaselineError("the Conv-4 backbone needs images of at least 16x16")
         object.__setattr__(self, "train_ways", tuple(self.train_ways))
-        check_counts(self, {"iterations": 1, "k_shot": 1, "meta_batch": 1, "checkpoint_every": 1, "seed": 0},
-                     "baseline ")
+        check_counts(self, {"iterations": 1, "k_shot": 1, "meta_batch": 1, "checkpoint_every": 1, "seed": 0,
+                            "validation_classes": 0, "validation_episodes": 1, "patience": 1}, "baseline ")
+        if self.validation_classes == 1:
+            raise BaselineError("early stopping needs at least 2 validation classes (or 0: none)")
         check_positive(self, ("learning_rate",), "baseline ")
         if not self.train_ways or min(self.train_ways) < 2:
             raise BaselineError(f"training ways must be 2 or more; got {self.train_ways}")
@@ -112,6 +126,15 @@ class Checkpoint:
     opt_state: object
     rng_state: dict
     curve: list = field(default_factory=list)   # (iteration, loss, accuracy) per iteration
+    validation: list = field(default_factory=list)   # (iteration, validation accuracy) per checkpoint
+    best_params: object = None                  # the parameters of the best validation accuracy
+    best_iteration: int = 0
+    stopped: bool = False                       # early-stopped (no improvement for ``patience`` checkpoints)
+
+    @property
+    def final_params(self):
+        """The parameters to evaluate: the best on validation when there was a validation."""
+        return self.params if self.best_params is None else self.best_params
 
     @classmethod
     def load(cls, folder: Path) -> "Checkpoint":
@@ -128,8 +151,8 @@ class Checkpoint:
         import jax
 
         to_numpy = lambda tree: jax.tree_util.tree_map(np.asarray, tree)  # noqa: E731
-        record = {"format": CHECKPOINT_FORMAT, **asdict(self),
-                  "params": to_numpy(self.params), "opt_state": to_numpy(self.opt_state)}
+        record = {"format": CHECKPOINT_FORMAT, **asdict(self), "params": to_numpy(self.params),
+                  "opt_state": to_numpy(self.opt_state), "best_params": to_numpy(self.best_params)}
         atomic_write(Path(folder) / "checkpoint.pkl", pickle.dumps(record))
 
 
@@ -142,12 +165,43 @@ def train_baseline(dataset_dir: str | Path, out: str | Path, config: TrainConfig
     return meta_train(images, out, config, progress)
 
 
+def split_validation(images: dict[str, np.ndarray], count: int, seed: int) -> tuple[dict, dict]:
+    """(training, validation) classes: ``count`` classes held out by a seeded draw."""
+    names = sorted(images)
+    if count and len(names) - count < 2:
+        raise BaselineError(f"the training split has {len(names)} classes: too few to hold out {count} "
+                            "for validation (--validation-classes)")
+    held = set(np.random.default_rng(seed).choice(len(names), count, replace=False).tolist()) if count else set()
+    return ({n: images[n] for i, n in enumerate(names) if i not in held},
+            {n: images[n] for i, n in enumerate(names) if i in held})
+
+
+def validation_tasks(images: dict[str, np.ndarray], episodes: int, seed: int) -> list:
+    """Fixed validation episodes over the N-way K-shot test settings the held-out classes allow."""
+    from ..evaluate.metrics import feasible_settings
+
+    if not images:
+        return []
+    settings = feasible_settings(len(images), min(len(v) for v in images.values()) - 1)
+    rng = np.random.default_rng(seed + 1)
+    return [sample_task(rng, images, *settings[e % len(settings)]) for e in range(episodes)]
+
+
+def validation_accuracy(predict, params, tasks: list) -> float:
+    """Mean query accuracy over the validation episodes."""
+    return float(np.mean([episode_accuracy(predict, params, support, len(labels) // n_way, queries, truth, n_way)
+                          for support, labels, queries, truth, n_way in tasks]))
+
+
 def meta_train(images: dict[str, np.ndarray], out: str | Path, config: TrainConfig,
                progress: Callable[[int, int], None] | None = None) -> Checkpoint:
-    """Meta-train (or resume) on ``images`` (class -> (shots, R, R, 3)); returns the final checkpoint."""
+    """Meta-train (or resume) on ``images`` (class -> (shots, R, R, 3)), holding out
+    ``config.validation_classes`` for early stopping; returns the final checkpoint."""
     import jax
     import optax
 
+    images, held_out = split_validation(images, config.validation_classes, config.seed)
+    tasks = validation_tasks(held_out, config.validation_episodes, config.seed)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     model = config.model()
@@ -155,7 +209,7 @@ def meta_train(images: dict[str, np.ndarray], out: str | Path, config: TrainConf
     settings = asdict(config)
     if (out / "checkpoint.pkl").exists():
         state = Checkpoint.load(out)
-        changed = [k for k in settings if k != "iterations" and state.config.get(k) != settings[k]]
+        changed = [k for k in settings if k not in ("iterations", "patience") and state.config.get(k) != settings[k]]
         if changed:
             raise BaselineError(f"{out} holds a baseline trained with other settings ({', '.join(changed)})")
         state.config = settings
@@ -179,25 +233,42 @@ def meta_train(images: dict[str, np.ndarray], out: str | Path, config: TrainConf
     ways = [w for w in config.train_ways if w <= len(images)]
     if not ways:
         raise BaselineError(f"the training split has {len(images)} classes: too few for {config.train_ways}-way tasks")
+    predict = jax.jit(model.predict, static_argnums=4)
     params, opt_state = state.params, state.opt_state
-    while state.iteration < config.iterations:
+    # resumed with another patience: whether training has stopped is decided again
+    state.stopped = bool(tasks) and _since_best(state) >= config.patience
+    while state.iteration < config.iterations and not state.stopped:
         way = ways[state.iteration % len(ways)]
-        tasks = tuple(sample_task(rng, images, way, config.k_shot)[:4] for _ in range(config.meta_batch))
-        params, opt_state, value, accuracy = update(params, opt_state, tasks, way)
+        batch = tuple(sample_task(rng, images, way, config.k_shot)[:4] for _ in range(config.meta_batch))
+        params, opt_state, value, accuracy = update(params, opt_state, batch, way)
         state.iteration += 1
         state.curve.append((state.iteration, float(value), float(accuracy)))
         if state.iteration % config.checkpoint_every == 0 or state.iteration == config.iterations:
             state.params, state.opt_state, state.rng_state = params, opt_state, rng.bit_generator.state
+            if tasks:
+                score = validation_accuracy(predict, params, tasks)
+                state.validation.append((state.iteration, score))
+                if _since_best(state) == 0:
+                    state.best_params, state.best_iteration = params, state.iteration
+                state.stopped = _since_best(state) >= config.patience
             state.save(out)
         if progress:
             progress(state.iteration, config.iterations)
     state.params, state.opt_state = params, opt_state
-    learning_curve(out, state.curve, config.label)
+    learning_curve(out, state.curve, config.label, state.validation, state.best_iteration)
     return state
 
 
-def learning_curve(out: Path, curve: list, label: str) -> Path:
-    """``curve.csv`` and ``learning_curve.png`` (meta-training loss and query accuracy, smoothed)."""
+def _since_best(state: Checkpoint) -> int:
+    """Checkpoints since the best validation accuracy (ties: the earliest); 0 when there is none yet."""
+    if not state.validation:
+        return 0
+    return len(state.validation) - 1 - int(np.argmax([v[1] for v in state.validation]))
+
+
+def learning_curve(out: Path, curve: list, label: str, validation: list = (), best: int = 0) -> Path:
+    """``curve.csv``, ``validation.csv`` and ``learning_curve.png`` (meta-training loss and query
+    accuracy, smoothed, with the validation accuracy per checkpoint and the kept one marked)."""
     import matplotlib.pyplot as plt
 
     from ..plots import save_figure
@@ -212,6 +283,12 @@ def learning_curve(out: Path, curve: list, label: str) -> Path:
         ax.plot(values[window - 1:, 0], smooth(values[:, column]), lw=1.5)
         ax.set_xlabel("iteration")
         ax.set_title(f"{label}: meta-training {name}")
+    if len(validation):
+        checked = np.asarray(validation, np.float64).reshape(-1, 2)
+        np.savetxt(out / "validation.csv", checked, delimiter=",", header="iteration,accuracy", comments="")
+        axes[1].plot(checked[:, 0], checked[:, 1], "o-", ms=3, color="C1", label="validation classes")
+        axes[1].axvline(best, color="C1", ls=":", label=f"kept: iteration {best}")
+        axes[1].legend(fontsize=7, loc="lower right")
     axes[0].set_yscale("log")
     return save_figure(figure, out / "learning_curve.png")
 
@@ -248,13 +325,15 @@ def evaluate_baseline(model_dir: str | Path, dataset_dir: str | Path, run_dir: s
             support = np.stack([by_index[i] for shots in episode.support for i in shots])
             queries = np.stack([by_index[i] for i, _ in episode.queries])
             truth = np.array([t for _, t in episode.queries])
-            scores.append(episode_accuracy(predict, state.params, support, k_shot, queries, truth, n_way))
+            scores.append(episode_accuracy(predict, state.final_params, support, k_shot, queries, truth, n_way))
             done += 1
             if progress:
                 progress(done, episodes * len(settings))
         mean, half = interval95(scores)
         accuracy[setting_name(n_way, k_shot)] = {"mean": mean, "half_width": half, "episodes": episodes}
-    result = {"model": config.label, "trained": state.config, "iterations": state.iteration, "accuracy": accuracy}
+    result = {"model": config.label, "trained": state.config, "iterations": state.iteration,
+              "kept_iteration": state.best_iteration if state.best_params is not None else state.iteration,
+              "early_stopped": state.stopped, "accuracy": accuracy}
     target = Path(run_dir) / "baselines" / f"{config.method}-{config.resolution}.json"
     atomic_json(target, result)
     return result

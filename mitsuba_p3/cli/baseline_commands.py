@@ -18,23 +18,32 @@ def baseline_train(
     dataset: Path = typer.Argument(..., help="Benchmark folder; its train split is used."),
     out: Path = typer.Option(..., "--out", help="Training folder (checkpoint, curve; resumes)."),
     resolution: int = typer.Option(56, help="Square input size: 56 or 84 as in the paper."),
-    iterations: Optional[int] = typer.Option(None, help="Meta-iterations (default: protonets 2000, maml 1000)."),
+    iterations: Optional[int] = typer.Option(None, help="Cap on meta-iterations (default 20000); training "
+                                             "stops earlier when the validation accuracy stops improving."),
     k_shot: int = typer.Option(1, help="Shots per class in the training tasks."),
     second_order: bool = typer.Option(False, help="MAML: differentiate through the inner loop."),
+    validation_classes: int = typer.Option(10, help="Train classes held out for early stopping (0: none)."),
+    patience: int = typer.Option(10, help="Checkpoints (100 iterations each) without a better validation "
+                                 "accuracy before training stops."),
     seed: int = typer.Option(0),
 ) -> None:
-    """Meta-train a baseline on a benchmark's train classes, with checkpoints and a learning curve."""
+    """Meta-train a baseline on a benchmark's train classes until its accuracy on held-out train
+    classes stops improving, with checkpoints (resumable) and a learning curve."""
     from ..baselines.train import DEFAULT_ITERATIONS, TrainConfig, train_baseline
 
     if resolution not in (56, 84):
         raise MitsubaP3Error("--resolution must be 56 or 84 (the paper's inputs)")
     config = TrainConfig(method=method, resolution=resolution, k_shot=k_shot, second_order=second_order, seed=seed,
-                         iterations=iterations or DEFAULT_ITERATIONS.get(method, 1000))
+                         iterations=iterations or DEFAULT_ITERATIONS.get(method, 20000),
+                         validation_classes=validation_classes, patience=patience)
     bar, update = progress_bar(f"{method} {resolution}")
     with bar:
         state = train_baseline(dataset, out, config, progress=update)
     last = state.curve[-100:]
-    typer.echo(json.dumps({"out": str(out), "iterations": state.iteration,
+    best = max((v[1] for v in state.validation), default=None)
+    typer.echo(json.dumps({"out": str(out), "iterations": state.iteration, "early_stopped": state.stopped,
+                           "kept_iteration": state.best_iteration if state.validation else state.iteration,
+                           "best_validation_accuracy": None if best is None else round(best, 4),
                            "recent_loss": round(float(np.mean([c[1] for c in last])), 4),
                            "recent_query_accuracy": round(float(np.mean([c[2] for c in last])), 4),
                            "learning_curve": str(out / "learning_curve.png")}, indent=2))
