@@ -296,6 +296,34 @@ def test_footprint_proposal_density_is_normalised_and_matches_its_draws():
     np.testing.assert_allclose(draws.mean(axis=0), mean, atol=2e-3)
 
 
+def test_a_windowed_likelihood_scores_the_window_around_the_object(fitted):
+    """The window sits on the object's footprint; the windowed log likelihood and material move
+    are the full image's restricted to the window's pixels (same renders, fewer pixels scored)."""
+    import jax
+    import jax.numpy as jnp
+    from blackjax.mcmc.random_walk import RWState
+
+    from mitsuba_p3.infer.likelihood import score
+    from mitsuba_p3.infer.model import PosteriorCore
+
+    core = PosteriorCore(fitted, LikelihoodConfig("p3", sigma=0.03, shadows=True), "mitsuba", 120, 160)
+    image = make_renderer_image(fitted)
+    top, left, height, width = core.window_for(image, (48, 64))
+    rows, cols = np.nonzero(np.abs(image - core.empty).max(axis=-1) > 0.1)
+    assert top <= rows.min() and rows.max() < top + height and left <= cols.min() and cols.max() < left + width
+    window = core.observe(image, (top, left, height, width))
+    z = jnp.asarray(fitted.prior.unconstrain({k: np.asarray(v)[None] for k, v in {
+        **TRUTH, "class_probabilities": np.array([0.001, 0.998, 0.001])}.items() if k != "kappa"})[0], jnp.float32)
+    crop = core.render(z)[top:top + height, left:left + width]
+    expected = score({"image": image[top:top + height, left:left + width]}, crop[None], core.config)[0]
+    assert float(core.log_likelihood(z, window)) == pytest.approx(float(expected), rel=1e-5)
+    state = RWState(z, core.logdensity(z, window))
+    _, _, loglik = core.scored_material_move(jax.random.PRNGKey(0), state, window)
+    assert np.isfinite(float(loglik))
+    # an object too large for the window: the whole image is scored
+    assert core.window_for(image, (12, 12)) is None
+
+
 def test_footprint_start_weights_average_to_one(fitted):
     """Draws from the defensive mixture, weighed by prior / mixture, have mean weight 1 (the
     first step's evidence estimate stays unbiased), and half of them land near the footprint."""
@@ -308,7 +336,7 @@ def test_footprint_start_weights_average_to_one(fitted):
     observation = core.observe(make_renderer_image(fitted))
     rng = np.random.default_rng(0)
     draws = initial_particles(fitted.prior, rng, 4000, hypotheses_of(fitted.prior, False))
-    offset = footprint_start(core, observation, draws, rng)
+    offset = footprint_start(core, observation["image"], draws, rng)
     assert offset.shape == draws.shape[:2] and np.all(offset <= np.log(2) + 1e-9)
     assert np.mean(np.exp(offset)) == pytest.approx(1.0, abs=0.05)
     shift = np.asarray(fitted.prior.constrain(jnp.asarray(draws[:, 1::2]))["shift"]).reshape(-1, 2)

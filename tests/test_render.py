@@ -32,6 +32,19 @@ def test_batch_equals_single_renders(scene):
     assert np.abs(batch[0] - batch[1]).max() > 0.1  # the batch elements really differ
 
 
+def test_a_window_renders_exactly_its_crop_of_the_image(scene):
+    """A window view renders only its pixels, and they are the full image's (colours and bases,
+    with shadows, batched); a window outside the image is refused."""
+    renderer = make_renderer(scene, height=H, width=W, shadows=True)
+    params = random_object_params(np.random.default_rng(3), 3)
+    view = renderer.window(10, 24, 32, 40)
+    np.testing.assert_array_equal(view.render(params), renderer.render(params)[:, 10:42, 24:64])
+    np.testing.assert_array_equal(view.render_bases(params), renderer.render_bases(params)[:, 10:42, 24:64])
+    assert renderer.render().shape == (H, W, 3)           # the full renderer is untouched
+    with pytest.raises(SceneError, match="does not fit"):
+        renderer.window(40, 0, 32, 40)
+
+
 def test_render_is_deterministic(scene):
     renderer = make_renderer(scene, height=H, width=W)
     assert np.array_equal(renderer.render(), renderer.render())

@@ -70,17 +70,12 @@ class AttributeRules:
     def from_materials(cls, materials: dict[str, dict], extra_colours: dict[str, tuple] | None = None
                        ) -> "AttributeRules":
         """Rules learnt from a fit's ``materials.json`` (keys ``colour-kind``, e.g. ``red-metal``)."""
-        from sklearn.linear_model import LogisticRegression
-        from sklearn.pipeline import make_pipeline
-        from sklearn.preprocessing import StandardScaler
-
         keys = list(materials)
         kinds = [key.rsplit("-", 1)[1] for key in keys]
         present = sorted(set(kinds) & set(KINDS))
         model, only = None, (present[0] if len(present) == 1 else None)
         if len(present) == 2:
-            model = make_pipeline(StandardScaler(), LogisticRegression(C=1.0)).fit(
-                _weights(materials[k] for k in keys), np.array([KINDS.index(k) for k in kinds]))
+            model = material_classifier(_weights(materials[k] for k in keys), kinds)
         names = [key.rsplit("-", 1)[0] for key in keys]
         centres = [chromaticity(reflectance(materials[key])) for key in keys]
         for name, rgb in (extra_colours or {}).items():   # colours the fit never saw: their label RGB (0-255)
@@ -89,12 +84,23 @@ class AttributeRules:
                 centres.append(chromaticity(np.asarray(rgb, np.float64)))
         return cls(model, only, names, np.array(centres, np.float64))
 
+    def with_material_from_posteriors(self, samples: list[dict], kinds: list[str]) -> "AttributeRules":
+        """The same rules with the material kind learnt from posteriors of *train* images (their
+        samples and labelled kinds) instead of the fit's materials: the classifier then sees at
+        training the same kind of input, posterior medians, that it is applied to. Unchanged when
+        the train images hold one kind only."""
+        from dataclasses import replace
+
+        if len(set(kinds) & set(KINDS)) < 2:
+            return self
+        return replace(self, material_model=material_classifier(_weights(_medians(s) for s in samples), kinds))
+
     def decide(self, samples: dict) -> dict:
         """Attribute names (and the shape's posterior probabilities) from posterior samples:
         ``class`` (n,), ``scale`` (n, 3), ``colour`` (n, 3), ``ambient``/``diffuse``/``specular``/``shininess`` (n, 1)."""
         counts = np.bincount(np.asarray(samples["class"], int).ravel(), minlength=len(SHAPES)).astype(float)
         shape_probabilities = counts / counts.sum()
-        medians = {k: float(np.median(samples[k])) for k in ("ambient", "diffuse", "specular", "shininess")}
+        medians = _medians(samples)
         if self.material_model is not None:
             metal = float(self.material_model.predict_proba(_weights([medians]))[0, 1])
             kind = KINDS[int(metal > 0.5)]
@@ -106,6 +112,20 @@ class AttributeRules:
         nearest = self.colour_names[int(np.argmin(np.sum((self.colour_albedos - colour) ** 2, axis=1)))]
         return {"shape": SHAPES[int(np.argmax(counts))], "shape_probabilities": shape_probabilities.tolist(),
                 "material": kind, "p_metal": metal, "size": size, "half_extent_m": half_extent, "colour": nearest}
+
+
+def _medians(samples: dict) -> dict:
+    return {k: float(np.median(samples[k])) for k in ("ambient", "diffuse", "specular", "shininess")}
+
+
+def material_classifier(features: np.ndarray, kinds: list[str]):
+    """Logistic regression (standardised features) from Phong-weight features to metal vs rubber."""
+    from sklearn.linear_model import LogisticRegression
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    return make_pipeline(StandardScaler(), LogisticRegression(C=1.0)).fit(
+        features, np.array([KINDS.index(k) for k in kinds]))
 
 
 def rules_for(fitted, dataset=None) -> AttributeRules:

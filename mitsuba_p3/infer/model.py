@@ -32,21 +32,33 @@ def contract_params(prior: Prior, z) -> dict:
     return render_params(prior.constrain(z), xp=jnp)
 
 
-def mitsuba_render_function(renderer, bases: bool = False) -> Callable:
+def mitsuba_render_function(renderer, bases: bool = False, window: tuple[int, int] | None = None) -> Callable:
     """A JAX function params -> image(s) that renders with Mitsuba on the host.
 
     Works on one parameter set (image (H, W, 3)) and under ``jax.vmap`` (the
     callback then gets all sets at once and renders them in one launch). With
     ``bases`` it returns the material bases (H, W, 4, 3) of ``renderer.render_bases``.
+    With ``window`` (height, width) the function is ``render(params, offset)``: only the
+    window of the image whose top-left pixel is ``offset`` (2,) (:meth:`MitsubaRenderer.window`).
     """
     import jax
     import jax.numpy as jnp
 
-    height, width = renderer.height, renderer.width
+    height, width = window or (renderer.height, renderer.width)
     pixel = (4, 3) if bases else (3,)
-    host_render = renderer.render_bases if bases else renderer.render
+    views = {}
 
     def host(*arrays):
+        if window:
+            # the offset is the same for the whole batch (it belongs to the observation)
+            top, left = (int(v) for v in np.asarray(arrays[-1]).reshape(-1, 2)[0])
+            arrays = arrays[:-1]
+            if (top, left) not in views:
+                views.clear()
+                views[top, left] = renderer.window(top, left, height, width)
+            view = views[top, left]
+        else:
+            view = renderer
         # Under vmap an argument that is not batched arrives with size-1 leading axes:
         # broadcast every argument to the common batch shape, then flatten it.
         leading = [np.shape(a)[:np.ndim(a) - len(OBJECT_SHAPES[k])] for k, a in zip(OBJECT_KEYS, arrays)]
@@ -54,13 +66,14 @@ def mitsuba_render_function(renderer, bases: bool = False) -> Callable:
         count = int(np.prod(batch_shape, dtype=np.int64))
         params = {key: np.broadcast_to(a, batch_shape + OBJECT_SHAPES[key]).reshape((count,) + OBJECT_SHAPES[key])
                   for key, a in zip(OBJECT_KEYS, arrays)}
-        images = host_render(params)
+        images = view.render_bases(params) if bases else view.render(params)
         return np.asarray(images, np.float32).reshape(batch_shape + (height, width) + pixel)
 
-    def render(params: dict):
+    def render(params: dict, offset=None):
         batch_shape = jnp.shape(params["theta"])
         out = jax.ShapeDtypeStruct(batch_shape + (height, width) + pixel, jnp.float32)
-        return jax.pure_callback(host, out, *[params[k] for k in OBJECT_KEYS], vmap_method="expand_dims")
+        extra = [jnp.asarray(offset, jnp.int32)] if window else []
+        return jax.pure_callback(host, out, *[params[k] for k in OBJECT_KEYS], *extra, vmap_method="expand_dims")
 
     return render
 
@@ -121,6 +134,7 @@ class PosteriorCore:
         # footprint (pixels that differ from it by more than the fitted threshold) need it
         self.empty = self.renderer.render_empty()
         self.footprint_threshold = fitted.noise.footprint if (fitted.root / "noise.json").exists() else None
+        self._windowed = {}       # (window size, bases) -> render function (see :meth:`_image`)
         if renderer == "mitsuba":
             self._render = mitsuba_render_function(self.renderer)
             self._bases = mitsuba_render_function(self.renderer, bases=True)
@@ -140,8 +154,54 @@ class PosteriorCore:
             cls._cache[key] = cls(fitted, likelihood, renderer, height, width)
         return cls._cache[key]
 
-    def observe(self, observed: np.ndarray) -> dict:
-        return observe(observed, self.config, self.channels, self.empty)
+    def observe(self, observed: np.ndarray, window: tuple[int, int, int, int] | None = None) -> dict:
+        """The observation pytree of an image at this core's size; with ``window`` (top, left, height,
+        width) only that window of it is scored (its ``window`` entry is the offset the renders take)."""
+        if window is None:
+            return observe(observed, self.config, self.channels, self.empty)
+        if self.renderer_kind != "mitsuba":
+            from ..errors import MitsubaP3Error
+
+            raise MitsubaP3Error("windowed likelihoods need the mitsuba renderer")
+        top, left, height, width = window
+        crop = lambda image: np.asarray(image)[top:top + height, left:left + width]  # noqa: E731
+        observation = observe(crop(observed), self.config, self.channels, crop(self.empty))
+        observation["window"] = np.array([top, left], np.int32)
+        return observation
+
+    def window_for(self, observed: np.ndarray, size: tuple[int, int], margin: int = 8):
+        """Where to score an image when only a ``size`` window is: centred on the largest connected
+        part of its footprint (object and shadow, :mod:`mitsuba_p3.infer.footprint`). None (score the
+        whole image) without a fitted footprint threshold, with an empty footprint, or when that part
+        with ``margin`` pixels around it does not fit the window."""
+        from scipy import ndimage
+
+        from .footprint import footprint_mask
+
+        height, width = min(size[0], self.renderer.height), min(size[1], self.renderer.width)
+        if self.footprint_threshold is None or (height, width) == (self.renderer.height, self.renderer.width):
+            return None
+        labels, count = ndimage.label(footprint_mask(observed, self.empty, self.footprint_threshold))
+        if count == 0:
+            return None
+        largest = 1 + int(np.argmax(ndimage.sum(labels > 0, labels, range(1, count + 1))))
+        rows, cols = np.nonzero(labels == largest)
+        if np.ptp(rows) + 1 + 2 * margin > height or np.ptp(cols) + 1 + 2 * margin > width:
+            return None
+        top = int(np.clip((rows.min() + rows.max() + 1 - height) // 2, 0, self.renderer.height - height))
+        left = int(np.clip((cols.min() + cols.max() + 1 - width) // 2, 0, self.renderer.width - width))
+        return top, left, height, width
+
+    def _image(self, z, observation, bases: bool = False):
+        """The render (or material bases) of z that ``observation`` scores: its window, or the whole image."""
+        params = contract_params(self.prior, z)
+        if "window" not in observation:
+            return (self._bases if bases else self._render)(params)
+        size = tuple(np.shape(observation["image"])[:2])
+        key = (size, bases)
+        if key not in self._windowed:
+            self._windowed[key] = mitsuba_render_function(self.renderer, bases, size)
+        return self._windowed[key](params, observation["window"])
 
     @functools.cached_property
     def camera_rays(self) -> tuple[np.ndarray, np.ndarray]:
@@ -157,7 +217,7 @@ class PosteriorCore:
 
     def log_likelihood(self, z, observation):
         """log p(I | z) of one position z (15,) (JAX; vmap for many)."""
-        return score(observation, self.render(z)[None], self.config, self.channels)[0]
+        return score(observation, self._image(z, observation)[None], self.config, self.channels)[0]
 
     def logdensity(self, z, observation):
         """log p(z) + log p(I | z) of one position z (15,) (JAX; vmap for many)."""
@@ -233,7 +293,7 @@ class PosteriorCore:
         import jax.numpy as jnp
 
         k_colour, k_weights = jax.random.split(key)
-        bases = self._bases(contract_params(self.prior, state.position))
+        bases = self._image(state.position, observation, bases=True)
         # Both conditionals need only inner products of A, D, S and the residual r = I_obs - F,
         # per channel: one (3, 4, 4) Gram matrix serves both moves.
         vectors = jnp.concatenate([bases[..., :3, :], (observation["image"] - bases[..., 3, :])[..., None, :]],

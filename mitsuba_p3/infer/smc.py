@@ -32,6 +32,15 @@ prior / (the mixture of both) times its likelihood^lambda_1, and keeps N: an
 importance-sampling step whose evidence estimate is unbiased, so the footprint
 makes the search cheaper without changing what is estimated.
 
+**A window around the object.** A render costs in proportion to its pixels, and at
+120x160 most of them are empty floor that every hypothesis explains alike. With
+``window=(h, w)`` the likelihood scores only an h x w window centred on the largest
+connected part of the image's footprint (object and shadow;
+:meth:`~mitsuba_p3.infer.model.PosteriorCore.window_for`), and every render of the run
+traces only those pixels (:meth:`~mitsuba_p3.render.mitsuba.MitsubaRenderer.window`).
+Every hypothesis is scored on the same pixels, so their evidences stay comparable; an
+image whose footprint does not fit the window is scored whole.
+
 **Material kind.** By default the matte/shiny decision is left inside each shape's
 run: the specular weight keeps the prior's two-component mixture, the material
 update proposes from both components, and p(shiny | h, I) is the particles' share
@@ -83,6 +92,7 @@ class SMCConfig:
     islands: int = 1               # independent SMC runs per hypothesis and round, their evidence pooled
     rounds: int = 1                # rounds of runs; a round after the first runs only the contenders
     decided: float = 0.99          # no further round once one hypothesis has this posterior weight
+    window: tuple | None = None    # score only a (height, width) window around the footprint (None: whole image)
     target_ess: float = 0.5        # of the incremental weights, as a share of the particles
     max_temperatures: int = 100    # a run that needs more jumps to lambda = 1 (statistics: 'forced')
     draws: int = 400               # posterior draws returned (resampled from the mixture)
@@ -97,6 +107,11 @@ class SMCConfig:
             raise ConfigError(f"smc target-ess must lie in (0, 1); got {self.target_ess}")
         if not 0.0 < self.decided <= 1.0:
             raise ConfigError(f"smc decided must lie in (0, 1]; got {self.decided}")
+        if self.window is not None:
+            window = tuple(self.window)
+            if len(window) != 2 or not all(isinstance(v, (int, np.integer)) and v >= 8 for v in window):
+                raise ConfigError(f"smc window must be (height, width) in pixels, each at least 8; got {self.window}")
+            object.__setattr__(self, "window", tuple(int(v) for v in window))
 
 
 class SMCState(NamedTuple):
@@ -192,7 +207,7 @@ def systematic_resample(rng: np.random.Generator, log_weights: np.ndarray, count
     return np.minimum(np.searchsorted(cumulative, positions), len(w) - 1)
 
 
-def footprint_start(core, observation, draws: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def footprint_start(core, image: np.ndarray, draws: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Place every other first-step draw (H, M, 15, in place) from the image's footprint
     (:mod:`mitsuba_p3.infer.footprint`) and return each draw's log importance weight (H, M),
     log prior - log (defensive mixture), for the position; zeros when there is no footprint."""
@@ -202,7 +217,7 @@ def footprint_start(core, observation, draws: np.ndarray, rng: np.random.Generat
     if threshold is None:
         return np.zeros(draws.shape[:2])
     origin, directions = core.camera_rays
-    mask = footprint_mask(observation["image"], core.empty, threshold)
+    mask = footprint_mask(image, core.empty, threshold)
     bound = core.prior.config.shift_bound
     proposal = FootprintProposal.of(mask, origin, directions, bound, rng)
     if proposal is None:
@@ -297,9 +312,10 @@ class Rows(NamedTuple):
 
 
 def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.random.Generator, key,
-           progress: Callable[[str, int, int], None] | None = None) -> Rows:
+           progress: Callable[[str, int, int], None] | None = None, image: np.ndarray | None = None) -> Rows:
     """One tempered SMC per row, all rows in the same batched renders; row r runs hypothesis
-    ``index[r]`` (see the module docstring for the steps)."""
+    ``index[r]`` (see the module docstring for the steps). ``image``: the whole image, whose
+    footprint places the first draws (default: the observation's, when it is not a window)."""
     import jax
     import jax.numpy as jnp
 
@@ -314,7 +330,8 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
     # the first reweighting starts from oversample x N prior draws and keeps N: a valid SMC step
     # (its evidence increment averages over all draws) that finds the object with few particles
     draws = initial_particles(core.prior, rng, n * config.oversample, rows)
-    offset = footprint_start(core, observation, draws, rng) if config.footprint else np.zeros(draws.shape[:2])
+    image = observation["image"] if image is None else image
+    offset = footprint_start(core, image, draws, rng) if config.footprint else np.zeros(draws.shape[:2])
     all_loglik, all_logprior = (np.asarray(a) for a in score(jnp.asarray(draws), index_j, observation))
     z = np.empty((count, n) + draws.shape[2:], np.float32)
     loglik, logprior = np.empty((count, n), np.float32), np.empty((count, n), np.float32)
@@ -397,11 +414,17 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
     key = jax.random.PRNGKey(config.seed)
     space = hypotheses_of(core.prior, config.kinds)
     count = len(space.names)
+    image = np.asarray(observation["image"])
+    window = None
+    if config.window and core.renderer_kind == "mitsuba" and "window" not in observation:
+        window = core.window_for(image, tuple(config.window))
+        observation = core.observe(image, window) if window else observation
     # round 1: islands x every hypothesis; later rounds: islands x those still in contention
     contenders, parts = np.arange(count), []
     for round_ in range(config.rounds):
         key, k_round = jax.random.split(key)
-        parts.append(temper(core, observation, np.tile(contenders, config.islands), config, rng, k_round, progress))
+        parts.append(temper(core, observation, np.tile(contenders, config.islands), config, rng, k_round, progress,
+                            image))
         rows = _joined(parts)
         pooled = pooled_evidence(rows, count)
         log_posterior = space.log_prior + pooled
@@ -426,6 +449,7 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
     logdensity = (logprior + loglik)[chosen_row, chosen_n].reshape(chains, per_chain)
     shiny_rows = (z[..., SLICES["specular"].start] > core.prior.specular_threshold()).mean(axis=1)
     statistics = {"hypotheses": {}, "rounds": len(parts), "temperatures": rows.temperatures,
+                  "window": list(window) if window else None,
                   "forced": bool(rows.temperatures == config.max_temperatures),
                   "walk_acceptance": float(np.mean(rows.acceptance[-1])), "seconds": time.perf_counter() - start}
     for h, name in enumerate(space.names):

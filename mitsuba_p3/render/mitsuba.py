@@ -96,8 +96,28 @@ class MitsubaRenderer(Renderer):
                         "filter_type": "bilinear", "wrap_mode": "clamp"},
         })
         self._pattern_params = mi.traverse(self._floor.pattern)
-        self._uploaded_pattern = None  # the tensor the bitmap holds now
+        self._uploaded = {"pattern": None}  # the tensor the bitmap holds now (shared with window views)
         self._pattern_cache: tuple[np.ndarray, mi.TensorXf] | None = None
+
+    def window(self, top: int, left: int, height: int, width: int) -> "MitsubaRenderer":
+        """The same renderer restricted to a window of its pixels: rows ``top`` to ``top + height``,
+        columns ``left`` to ``left + width``. Its renders are exactly that crop of the full image's,
+        at the cost of the window's pixels only (a sampler that scores a window around the object
+        pays for those pixels, not the empty floor's). Shares the scene, pattern and kernels."""
+        import copy
+
+        from ..errors import SceneError
+
+        if not (0 <= top and 0 <= left and height >= 1 and width >= 1 and top + height <= self.height
+                and left + width <= self.width):
+            raise SceneError(f"window {height}x{width} at ({top}, {left}) does not fit a "
+                             f"{self.height}x{self.width} image")
+        view = copy.copy(self)
+        rows = np.arange(top, top + height)[:, None] * self.width + np.arange(left, left + width)[None, :]
+        view._directions = dr.gather(mi.Vector3f, self._directions, mi.UInt32(rows.reshape(-1).astype(np.uint32)))
+        dr.eval(view._directions)
+        view.height, view.width = int(height), int(width)
+        return view
 
     # ------------------------------------------------------------------ params
 
@@ -107,10 +127,10 @@ class MitsubaRenderer(Renderer):
         The floor's ``phong`` BSDF supplies the floor albedo (colour x pattern); its
         Phong weights are read straight from the parameters in :meth:`_shade`.
         """
-        if p.floor_pattern is not self._uploaded_pattern:
+        if p.floor_pattern is not self._uploaded["pattern"]:
             self._pattern_params["data"] = p.floor_pattern
             self._pattern_params.update()
-            self._uploaded_pattern = p.floor_pattern
+            self._uploaded["pattern"] = p.floor_pattern
 
     # ------------------------------------------------------------------ render
     def render_drjit(self, p: DrParams) -> mi.TensorXf:

@@ -1,0 +1,62 @@
+"""Which material-kind rule? Compared on *train* posteriors, leave one class out.
+
+The material kind (rubber or metal) of a posterior is decided by a logistic
+regression on the posterior medians of the Phong weights (k_a, k_d, k_s, log alpha).
+Two ways to learn it, compared here on the cached train posteriors of an
+evaluation run (``mitsuba-p3 evaluate`` caches them for the concept spread):
+
+- ``fit``: learnt from the materials the fit optimised per train colour and kind
+  (``materials.json``; 16 points), the rule ``mitsuba-p3 infer`` uses;
+- ``posteriors``: learnt from the train posteriors themselves, whose kinds the labels
+  give, so the classifier sees at training the kind of input it is applied to.
+
+Each train class is held out in turn: the ``posteriors`` rule is learnt on the other
+classes' posteriors and scored on the held-out class's (the ``fit`` rule is fixed).
+Prints JSON: material accuracy per rule, and how many posteriors were scored.
+
+    python scripts/select_material_rule.py --dataset data/fsclvr-lo --model data/models/fsclvr-lo \\
+        --run out/train-smc-v5 [--likelihood p3]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+from mitsuba_p3.benchmarks.dataset import load_dataset
+from mitsuba_p3.evaluate.jobs import cached_train_programs
+from mitsuba_p3.fit.attributes import rules_for
+from mitsuba_p3.fit.model import FittedModel
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--dataset", default="data/fsclvr")
+    parser.add_argument("--model", default="data/models/fsclvr")
+    parser.add_argument("--run", required=True, help="an evaluation run with cached train posteriors")
+    parser.add_argument("--likelihood", default="p3")
+    args = parser.parse_args()
+
+    dataset = load_dataset(args.dataset)
+    fit_rules = rules_for(FittedModel(args.model), dataset)
+    labels = dataset.class_labels
+    programs = {name: p for name, p in cached_train_programs(dataset, args.run, args.likelihood).items() if p}
+    if not programs:
+        raise SystemExit(f"{args.run} holds no cached train posteriors for {args.likelihood}")
+    right = {"fit": [], "posteriors": []}
+    for held in programs:
+        samples = [p.samples for name, ps in programs.items() if name != held for p in ps]
+        kinds = [labels[name].material for name, ps in programs.items() if name != held for _ in ps]
+        learnt = fit_rules.with_material_from_posteriors(samples, kinds)
+        for program in programs[held]:
+            truth = labels[held].material
+            right["fit"].append(fit_rules.decide(program.samples)["material"] == truth)
+            right["posteriors"].append(learnt.decide(program.samples)["material"] == truth)
+    print(json.dumps({"run": args.run, "likelihood": args.likelihood, "classes": len(programs),
+                      "posteriors": len(right["fit"]),
+                      "material_accuracy": {k: round(float(np.mean(v)), 3) for k, v in right.items()}}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
