@@ -441,7 +441,7 @@ def test_sbc_runs_on_the_phong_model_and_resumes(fitted, tmp_path):
     from sbc import smc_sampler
 
     core = PosteriorCore(fitted, LikelihoodConfig("p3", sigma=0.2, shadows=True), "mitsuba", *RES)
-    sample = smc_sampler(core, SMCConfig(particles=4, oversample=2, mcmc_steps=1, final_steps=0, draws=16))
+    sample = smc_sampler(core, SMCConfig(particles=4, oversample=2, mcmc_steps=1, final_steps=0, draws=16, islands=1))
     cache = tmp_path / "cache.npz"
     first = run_sbc(core, sample, 2, 9, cache=cache)
     assert first.ranks.shape == (2, 8) and first.ranks.min() >= 0 and first.ranks.max() <= 9

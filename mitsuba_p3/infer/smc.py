@@ -82,17 +82,17 @@ CLASS_LOGITS = np.array([[8.0, 0.0], [0.0, 8.0], [-8.0, -8.0]], np.float32)
 
 @dataclass(frozen=True)
 class SMCConfig:
-    particles: int = 32            # per hypothesis
+    particles: int = 64            # per hypothesis and run
     oversample: int = 8            # prior draws per particle at the start (the first reweighting picks N of them)
     mcmc_steps: int = 5            # random-walk sweeps per temperature
     material_every: int = 5        # a material update after every k-th sweep (and the last)
     final_steps: int = 6           # extra sweeps at lambda = 1, to spread the resampled particles again
     footprint: bool = True         # half of the first step's draws placed from the image's footprint
     kinds: bool = False            # material kinds as hypotheses of their own (else within each shape)
-    islands: int = 1               # independent SMC runs per hypothesis and round, their evidence pooled
+    islands: int = 2               # independent SMC runs per hypothesis and round, their evidence pooled
     rounds: int = 1                # rounds of runs; a round after the first runs only the contenders
     decided: float = 0.99          # no further round once one hypothesis has this posterior weight
-    window: tuple | None = None    # score only a (height, width) window around the footprint (None: whole image)
+    window: tuple | None = (56, 72)  # score only a (height, width) window around the footprint (None: whole image)
     target_ess: float = 0.5        # of the incremental weights, as a share of the particles
     max_temperatures: int = 100    # a run that needs more jumps to lambda = 1 (statistics: 'forced')
     draws: int = 400               # posterior draws returned (resampled from the mixture)
