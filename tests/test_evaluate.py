@@ -7,7 +7,7 @@ import signal
 import subprocess
 import sys
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 
 import numpy as np
 import pytest
@@ -177,6 +177,21 @@ def test_run_folder_refuses_other_settings(bench, tmp_path):
     changed = EvaluationConfig(likelihoods=("p3",), sampler=SamplerConfig(**{**asdict(TINY), "steps": 31}))
     with pytest.raises(EvaluationError, match="other settings"):
         evaluate(bench / "data", bench / "model", tmp_path, changed)
+
+
+def test_a_run_with_tuple_settings_resumes(bench, tmp_path):
+    """Settings that are tuples (the SMC's window) read back from run.json as lists: a rerun with the
+    same settings over cached posteriors resumes rather than being refused as 'other settings'."""
+    from mitsuba_p3.infer.smc import SMCConfig
+
+    config = EvaluationConfig(likelihoods=("p3",), noise="fitted", sampler=SMCConfig(particles=4, window=(48, 64)))
+    dataset = load_dataset(bench / "data")
+    check_run(tmp_path, dataset, bench / "model", config)
+    (tmp_path / "posteriors" / "p3").mkdir(parents=True)
+    (tmp_path / "posteriors" / "p3" / "0.npz").write_bytes(b"")             # a cached posterior, as far as run.json cares
+    check_run(tmp_path, dataset, bench / "model", config)
+    with pytest.raises(EvaluationError, match="other settings"):
+        check_run(tmp_path, dataset, bench / "model", replace(config, sampler=SMCConfig(particles=4, window=(56, 72))))
 
 
 def test_a_model_or_data_set_changed_in_place_is_noticed(bench, tmp_path):

@@ -179,6 +179,7 @@ def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: Evaluati
               # the files' contents too: a model fitted again, or labels rewritten, in the same folder
               "model_digest": file_digest(Path(model_dir) / "model.json"),
               "labels_digest": file_digest(Path(dataset.root) / "labels.json")}
+    record = json.loads(json.dumps(record))   # as the file holds it (a tuple setting reads back as a list)
     # a run folder may already hold baselines scored on the same episodes (mitsuba-p3 baseline evaluate)
     claim_output_folder(run_dir, ("run.json", "baselines"), "mitsuba-p3 evaluate")
     path = run_dir / "run.json"
