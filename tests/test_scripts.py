@@ -79,3 +79,30 @@ def test_reproduce_generates_at_the_asked_resolution(tmp_path, monkeypatch):
     assert calls == [("ood", (120, 160)), ("fsclvr", (120, 160)), ("fit", None)]
     with pytest.raises(ConfigError, match="resolution"):
         tables.ReproduceConfig(resolution=(4, 160))
+
+
+@pytest.mark.slow
+def test_train_baselines_trains_scores_and_resumes(tmp_path):
+    """scripts/train_baselines.py trains a baseline to its cap, scores it into the run folder, and a
+    rerun resumes: nothing is trained or scored again."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from mitsuba_p3.benchmarks.generate import generate
+
+    generate("fsclvr", tmp_path / "data" / "fsclvr", seed=2, size="small", resolution=(30, 40), spp=4)
+    script = Path(__file__).resolve().parents[1] / "scripts" / "train_baselines.py"
+    command = [sys.executable, str(script), "--data", str(tmp_path / "data"), "--out", str(tmp_path / "out"),
+               "--benchmarks", "fsclvr", "--methods", "protonets", "--resolutions", "56", "--iterations", "4",
+               "--episodes", "3"]
+    first = subprocess.run(command, capture_output=True, text=True, timeout=900)
+    assert first.returncode == 0, first.stderr
+    line = json.loads(first.stdout.strip().splitlines()[-1])
+    assert line["baseline"] == "fsclvr-protonets-56" and line["iterations"] == 4
+    result = tmp_path / "out" / "runs" / "fsclvr" / "baselines" / "protonets-56.json"
+    written = result.stat().st_mtime_ns
+    again = subprocess.run(command, capture_output=True, text=True, timeout=900)
+    assert again.returncode == 0, again.stderr
+    assert json.loads(again.stdout.strip().splitlines()[-1])["iterations"] == 4
+    assert result.stat().st_mtime_ns == written

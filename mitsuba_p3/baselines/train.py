@@ -10,7 +10,7 @@ RNG and the learning curve go to ``DIR/checkpoint.pkl`` (atomic write); a rerun
 resumes from it, and refuses a folder trained with other settings.
 
 **Early stopping.** ``validation_classes`` of the train classes (a fixed, seeded
-choice) are held out of meta-training. At every checkpoint the network is scored
+choice; at most a third of them) are held out of meta-training. At every checkpoint the network is scored
 on the same ``validation_episodes`` episodes of those classes (N-way K-shot over
 the test settings they allow, every remaining shot a query); the best parameters
 so far are kept, and training stops once ``patience`` checkpoints in a row have
@@ -166,11 +166,11 @@ def train_baseline(dataset_dir: str | Path, out: str | Path, config: TrainConfig
 
 
 def split_validation(images: dict[str, np.ndarray], count: int, seed: int) -> tuple[dict, dict]:
-    """(training, validation) classes: ``count`` classes held out by a seeded draw."""
+    """(training, validation) classes: ``count`` classes held out by a seeded draw, at most a third
+    of them; none when that leaves fewer than 2 (a tiny benchmark trains to its cap)."""
     names = sorted(images)
-    if count and len(names) - count < 2:
-        raise BaselineError(f"the training split has {len(names)} classes: too few to hold out {count} "
-                            "for validation (--validation-classes)")
+    count = min(count, len(names) // 3)
+    count = count if count >= 2 else 0
     held = set(np.random.default_rng(seed).choice(len(names), count, replace=False).tolist()) if count else set()
     return ({n: images[n] for i, n in enumerate(names) if i not in held},
             {n: images[n] for i, n in enumerate(names) if i in held})
