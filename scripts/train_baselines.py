@@ -66,15 +66,14 @@ def main() -> None:
                     result = json.loads(result_file.read_text())
                     scored[target] = {k: round(100 * v["mean"], 1) for k, v in result["accuracy"].items()}
                 print(json.dumps({"baseline": name, "iterations": state.iteration, "early_stopped": state.stopped,
-                                  "kept_iteration": state.best_iteration,
-                                  "best_validation_accuracy": max((v[1] for v in state.validation), default=None),
+                                  "kept_iteration": state.kept_iteration,
+                                  "best_validation_accuracy": state.best_validation,
                                   "test_accuracy": scored}), flush=True)
 
 
 def _scored_before(result_file: Path, state: Checkpoint) -> bool:
     """A score written for an earlier checkpoint than the one training has kept since."""
-    kept = state.best_iteration if state.best_params is not None else state.iteration
-    return json.loads(result_file.read_text()).get("kept_iteration") != kept
+    return json.loads(result_file.read_text()).get("kept_iteration") != state.kept_iteration
 
 
 if __name__ == "__main__":

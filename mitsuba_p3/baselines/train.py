@@ -136,6 +136,16 @@ class Checkpoint:
         """The parameters to evaluate: the best on validation when there was a validation."""
         return self.params if self.best_params is None else self.best_params
 
+    @property
+    def kept_iteration(self) -> int:
+        """The iteration of :attr:`final_params`."""
+        return self.iteration if self.best_params is None else self.best_iteration
+
+    @property
+    def best_validation(self) -> float | None:
+        """The best validation accuracy so far (None: no validation)."""
+        return max((v[1] for v in self.validation), default=None)
+
     @classmethod
     def load(cls, folder: Path) -> "Checkpoint":
         path = Path(folder) / "checkpoint.pkl"
@@ -332,7 +342,7 @@ def evaluate_baseline(model_dir: str | Path, dataset_dir: str | Path, run_dir: s
         mean, half = interval95(scores)
         accuracy[setting_name(n_way, k_shot)] = {"mean": mean, "half_width": half, "episodes": episodes}
     result = {"model": config.label, "trained": state.config, "iterations": state.iteration,
-              "kept_iteration": state.best_iteration if state.best_params is not None else state.iteration,
+              "kept_iteration": state.kept_iteration,
               "early_stopped": state.stopped, "accuracy": accuracy}
     target = Path(run_dir) / "baselines" / f"{config.method}-{config.resolution}.json"
     atomic_json(target, result)

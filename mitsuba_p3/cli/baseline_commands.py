@@ -22,9 +22,10 @@ def baseline_train(
                                              "stops earlier when the validation accuracy stops improving."),
     k_shot: int = typer.Option(1, help="Shots per class in the training tasks."),
     second_order: bool = typer.Option(False, help="MAML: differentiate through the inner loop."),
-    validation_classes: int = typer.Option(10, help="Train classes held out for early stopping (0: none)."),
-    patience: int = typer.Option(10, help="Checkpoints (100 iterations each) without a better validation "
-                                 "accuracy before training stops."),
+    validation_classes: Optional[int] = typer.Option(None, help="Train classes held out for early stopping "
+                                                     "(0: none; default 10, at most a third)."),
+    patience: Optional[int] = typer.Option(None, help="Checkpoints (100 iterations each) without a better "
+                                           "validation accuracy before training stops (default 10)."),
     seed: int = typer.Option(0),
 ) -> None:
     """Meta-train a baseline on a benchmark's train classes until its accuracy on held-out train
@@ -35,14 +36,15 @@ def baseline_train(
         raise MitsubaP3Error("--resolution must be 56 or 84 (the paper's inputs)")
     config = TrainConfig(method=method, resolution=resolution, k_shot=k_shot, second_order=second_order, seed=seed,
                          iterations=iterations or DEFAULT_ITERATIONS.get(method, 20000),
-                         validation_classes=validation_classes, patience=patience)
+                         **{k: v for k, v in (("validation_classes", validation_classes), ("patience", patience))
+                            if v is not None})
     bar, update = progress_bar(f"{method} {resolution}")
     with bar:
         state = train_baseline(dataset, out, config, progress=update)
     last = state.curve[-100:]
-    best = max((v[1] for v in state.validation), default=None)
+    best = state.best_validation
     typer.echo(json.dumps({"out": str(out), "iterations": state.iteration, "early_stopped": state.stopped,
-                           "kept_iteration": state.best_iteration if state.validation else state.iteration,
+                           "kept_iteration": state.kept_iteration,
                            "best_validation_accuracy": None if best is None else round(best, 4),
                            "recent_loss": round(float(np.mean([c[1] for c in last])), 4),
                            "recent_query_accuracy": round(float(np.mean([c[2] for c in last])), 4),
