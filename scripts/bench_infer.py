@@ -6,8 +6,13 @@ evaluation's cached, resumable, parallel posterior jobs (``OUT/CONFIG-seedS``; a
 run resumes), then prints JSON, the settings side by side:
 
 - ``seconds_per_image``: median wall-clock seconds of one posterior (workers share the cores);
+  ``run_seconds_per_image``: the wall-clock time of the first seed's whole run (workers'
+  start-up included) over its images: what an image costs on this machine with ``--jobs``
+  workers; measured only when the run started empty (null when it resumed);
 - attribute recovery (:func:`mitsuba_p3.evaluate.metrics.attribute_recovery`, first seed):
-  shape (all, large), material kind, size, colour, mean log p(true shape), shape ECE;
+  shape (all, large), material kind, size, colour, mean log p(true shape), shape ECE; the
+  material kind also by the rule ``evaluate`` uses when the run holds train posteriors
+  (``mitsuba-p3 evaluate ... --out OUT/smc-seed0`` adds them), learnt from those posteriors;
 - ``max_r_hat_across_seeds``: per image, the R-hat of shift, scale and colour with each
   seed's run as one chain; the median and the 90th percentile over images;
 - ``log_evidence_spread``: for samplers that estimate an evidence (none of the MH settings).
@@ -29,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import time
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -37,6 +43,7 @@ import numpy as np
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.evaluate import (PRESET, CachedPosterior, EvaluationConfig, check_run, compute_posteriors,
                                  posterior_path)
+from mitsuba_p3.evaluate.jobs import rules_with_train_posteriors
 from mitsuba_p3.evaluate.metrics import attribute_recovery
 from mitsuba_p3.fit.attributes import rules_for
 from mitsuba_p3.fit.model import FittedModel
@@ -101,13 +108,22 @@ def main() -> None:
             sampler = replace(settings.get("sampler", PRESET), seed=seed)
             config = EvaluationConfig(likelihoods=("p3",), sampler=sampler, jobs=args.jobs, noise=settings["noise"])
             check_run(run_dir, dataset, Path(args.model), config)
+            fresh = not any(posterior_path(run_dir, "p3", s.index).exists() for s in tests)
+            start = time.perf_counter()
             compute_posteriors(dataset, Path(args.model), run_dir, config, shots=[s.index for s in tests],
                                progress=lambda d, t: print(f"\r{name} seed {seed}: {d}/{t}", end="", flush=True))
             print(flush=True)
+            if seed == 0:
+                run_seconds = (time.perf_counter() - start) / len(tests) if fresh else None
             runs.append({s.index: CachedPosterior.load(posterior_path(run_dir, "p3", s.index), 500) for s in tests})
         _, recovered = attribute_recovery(dataset, runs[0], rules)
+        learnt = rules_with_train_posteriors(rules, dataset, args.out / f"{name}-seed0", "p3")
+        if learnt is not rules:
+            recovered["material_accuracy_train_posterior_rule"] = attribute_recovery(
+                dataset, runs[0], learnt)[1]["material_accuracy"]
         seconds = [p.seconds for run in runs for p in run.values()]
         entry = {"sampler": asdict(sampler), "seconds_per_image": float(np.median(seconds)),
+                 "run_seconds_per_image": run_seconds,
                  **{k: round(v, 4) for k, v in recovered.items()},
                  "max_r_hat_within_run_median": float(np.median([p.max_r_hat for p in runs[0].values()])),
                  "log_evidence_spread": _evidence_spread(runs)}

@@ -6,9 +6,11 @@ Two ways to learn it, compared here on the cached train posteriors of an
 evaluation run (``mitsuba-p3 evaluate`` caches them for the concept spread):
 
 - ``fit``: learnt from the materials the fit optimised per train colour and kind
-  (``materials.json``; 16 points), the rule ``mitsuba-p3 infer`` uses;
+  (``materials.json``; 16 points), the rule ``mitsuba-p3 infer`` uses (one image has no
+  train posteriors beside it);
 - ``posteriors``: learnt from the train posteriors themselves, whose kinds the labels
-  give, so the classifier sees at training the kind of input it is applied to.
+  give, so the classifier sees at training the kind of input it is applied to; the rule
+  ``mitsuba-p3 evaluate`` uses, since its runs hold train posteriors for the concept spread.
 
 Each train class is held out in turn: the ``posteriors`` rule is learnt on the other
 classes' posteriors and scored on the held-out class's (the ``fit`` rule is fixed).

@@ -394,6 +394,39 @@ def test_attribute_rules_name_a_dim_metal_by_its_hue_and_learn_the_material_kind
     assert (decided["size"], decided["colour"], decided["material"]) == ("small", "cyan", "rubber")
 
 
+def test_material_rule_learnt_from_train_posteriors_sees_what_posteriors_say():
+    """Posteriors of metals need not look like the fit's metal materials (a metal sphere's posterior
+    has a small specular weight: Phong cannot make its reflections). Learnt from train posteriors with
+    their labelled kinds, the rule names a posterior like the train metals' a metal, where the rule of
+    the fit's materials calls it rubber; with one kind among the train posteriors nothing changes."""
+    from mitsuba_p3.fit.attributes import AttributeRules
+
+    def material(colour, ambient, diffuse, specular, shininess):
+        return {"colour": list(colour), "ambient": ambient, "diffuse": diffuse, "specular": specular,
+                "shininess": shininess}
+
+    def posterior(ambient, diffuse, specular, rng, n=40):
+        jitter = lambda v: np.abs(v + 0.02 * rng.standard_normal((n, 1)))  # noqa: E731
+        return {"class": np.zeros(n, int), "scale": np.full((n, 3), 0.03), "colour": np.tile([0.5, 0.5, 0.5], (n, 1)),
+                "ambient": jitter(ambient), "diffuse": jitter(diffuse), "specular": jitter(specular),
+                "shininess": np.full((n, 1), 5.0)}
+
+    materials = {"gray-metal": material((0.5, 0.5, 0.5), 0.6, 0.0, 1.7, 8.0),
+                 "red-metal": material((0.9, 0.1, 0.1), 0.5, 0.1, 1.2, 8.0),
+                 "gray-rubber": material((0.5, 0.5, 0.5), 0.4, 0.6, 0.3, 2.0),
+                 "red-rubber": material((0.8, 0.3, 0.3), 0.5, 0.4, 0.2, 4.0)}
+    fit_rules = AttributeRules.from_materials(materials)
+    rng = np.random.default_rng(0)
+    metals = [posterior(0.45, 0.35, 0.25, rng) for _ in range(6)]
+    rubbers = [posterior(0.3, 0.7, 0.25, rng) for _ in range(6)]
+    learnt = fit_rules.with_material_from_posteriors(metals + rubbers, ["metal"] * 6 + ["rubber"] * 6)
+    query = posterior(0.45, 0.35, 0.25, rng)
+    assert fit_rules.decide(query)["material"] == "rubber"
+    assert learnt.decide(query)["material"] == "metal"
+    assert learnt.decide(posterior(0.3, 0.7, 0.25, rng))["material"] == "rubber"
+    assert fit_rules.with_material_from_posteriors(metals, ["metal"] * 6) is fit_rules
+
+
 @pytest.mark.parametrize("name, damage", [("model.json", b""), ("priors.json", b'{"gmms": {'),
                                           ("scene.npz", None), ("features.json", None), ("noise.json", b"[]")])
 def test_a_damaged_model_folder_is_one_line_naming_the_refit(tiny_model, tmp_path, name, damage):

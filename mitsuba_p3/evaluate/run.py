@@ -14,7 +14,8 @@ from ..files import atomic_json, atomic_open, folder_lock
 from ..fit.attributes import rules_for
 from ..fit.model import FittedModel
 from .config import EvaluationConfig
-from .jobs import CachedPosterior, check_run, check_scheduler, compute_posteriors, posterior_path
+from .jobs import (CachedPosterior, check_run, check_scheduler, compute_posteriors, posterior_path,
+                   rules_with_train_posteriors)
 from .metrics import (accuracy_of, attribute_recovery, classify_episodes, pose_errors, pose_summary, setting_name,
                       test_settings)
 from .tables import tables_dir, write_tables
@@ -133,7 +134,8 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
                 predictions += rows
                 accuracy[setting_name(n_way, k_shot)] = accuracy_of(rows, config.episodes)
             per_class, overall = pose_summary(pose_errors(dataset, cached))
-            rows, recovered = attribute_recovery(dataset, cached, rules)
+            rules_here = rules_with_train_posteriors(rules, dataset, run_dir, likelihood)
+            rows, recovered = attribute_recovery(dataset, cached, rules_here)
             attributes += [{"model": likelihood, **row} for row in rows]
             results[likelihood] = {
                 "accuracy": accuracy, "adi_per_class": per_class, "adi": overall, "attributes": recovered,
