@@ -27,7 +27,7 @@ import json
 import numpy as np
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
-from mitsuba_p3.evaluate.jobs import cached_train_programs
+from mitsuba_p3.evaluate.jobs import cached_train_programs, rules_learnt_from
 from mitsuba_p3.fit.attributes import rules_for
 from mitsuba_p3.fit.model import FittedModel
 
@@ -48,9 +48,7 @@ def main() -> None:
         raise SystemExit(f"{args.run} holds no cached train posteriors for {args.likelihood}")
     right = {"fit": [], "posteriors": []}
     for held in programs:
-        samples = [p.samples for name, ps in programs.items() if name != held for p in ps]
-        kinds = [labels[name].material for name, ps in programs.items() if name != held for _ in ps]
-        learnt = fit_rules.with_material_from_posteriors(samples, kinds)
+        learnt = rules_learnt_from(fit_rules, {n: ps for n, ps in programs.items() if n != held}, labels)
         for program in programs[held]:
             truth = labels[held].material
             right["fit"].append(fit_rules.decide(program.samples)["material"] == truth)

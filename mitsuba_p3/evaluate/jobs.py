@@ -176,11 +176,15 @@ def rules_with_train_posteriors(rules, dataset: Dataset, run_dir: Path, likeliho
     posteriors of both kinds; else ``rules`` unchanged. Chosen on train classes: on the train posteriors of
     fsclvr at 120x160, each class held out in turn, this rule scored 88.9% against 75.6% for the rule
     learnt from the fit's materials (``scripts/select_material_rule.py``; docs/results.md)."""
-    programs = cached_train_programs(dataset, run_dir, likelihood)
-    labels = dataset.class_labels
+    return rules_learnt_from(rules, cached_train_programs(dataset, run_dir, likelihood), dataset.class_labels)
+
+
+def rules_learnt_from(rules, programs: dict[str, list[ProtoProgram]], labels: dict):
+    """``rules`` with the material kind learnt from these train programs (by class name; ``labels``
+    give each class's kind); unchanged without programs of both kinds."""
     samples = [p.samples for ps in programs.values() for p in ps]
     kinds = [labels[name].material for name, ps in programs.items() for _ in ps]
-    return rules.with_material_from_posteriors(samples, kinds) if samples else rules
+    return rules.with_material_from_posteriors(samples, kinds)
 
 
 def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: EvaluationConfig) -> None:
