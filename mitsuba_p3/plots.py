@@ -269,3 +269,58 @@ def reliability_diagram(path: str | Path, results: dict, settings: Sequence[str]
         ax.legend(fontsize=7, loc="upper left")
     axes[0][0].set_ylabel("accuracy")
     return save_figure(figure, path)
+
+
+def accuracy_bars(path: str | Path, panels: dict[str, dict[str, dict]], settings: Sequence[str],
+                  reference: dict[str, Sequence[float]] | None = None) -> Path:
+    """Few-shot accuracy per setting as grouped bars, one panel per benchmark. ``panels``: benchmark ->
+    {row name: {setting: (mean, 95% half-width)}}; ``reference``: benchmark -> one accuracy per setting
+    (the paper's P3, drawn as black ticks)."""
+    plt = _pyplot()
+    names = list(dict.fromkeys(row for rows in panels.values() for row in rows))
+    colours = {name: plt.cm.tab10(i % 10) for i, name in enumerate(names)}
+    figure, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.6), squeeze=False, sharey=True)
+    x = np.arange(len(settings))
+    for ax, (benchmark, rows) in zip(axes[0], panels.items()):
+        width = 0.8 / max(len(rows), 1)
+        for i, (name, cells) in enumerate(rows.items()):
+            means = [100 * cells.get(s, (np.nan, 0))[0] for s in settings]
+            errors = [100 * cells.get(s, (np.nan, 0))[1] for s in settings]
+            ax.bar(x - 0.4 + (i + 0.5) * width, means, width, yerr=errors, capsize=2, color=colours[name],
+                   label=name)
+        if reference and benchmark in reference:
+            ax.scatter(x, reference[benchmark], marker="_", s=400, color="black", zorder=3, label="paper P3")
+        ax.set_title(benchmark)
+        ax.set_xticks(x, [s.replace("-way ", "w").replace("-shot", "s") for s in settings])
+        ax.set_ylim(0, 100)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0][0].set_ylabel("accuracy (%), 95% interval")
+    handles = {h.get_label(): h for ax in axes[0] for h in ax.get_legend_handles_labels()[0]}
+    lines = -(-len(handles) // 4)
+    figure.tight_layout(rect=(0, 0.06 * lines, 1, 1))
+    figure.legend(handles.values(), handles.keys(), loc="lower center", ncol=min(len(handles), 4), fontsize=8)
+    return save_figure(figure, path)
+
+
+def attribute_bars(path: str | Path, panels: dict[str, dict[str, dict]]) -> Path:
+    """Attribute recovery (share of test images whose posterior names the attribute right) as bars,
+    one panel per benchmark; ``panels``: benchmark -> {row name: {attribute: accuracy}}."""
+    plt = _pyplot()
+    attributes = list(dict.fromkeys(a for rows in panels.values() for cells in rows.values() for a in cells))
+    names = list(dict.fromkeys(row for rows in panels.values() for row in rows))
+    colours = {name: plt.cm.tab10(i % 10) for i, name in enumerate(names)}
+    figure, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.4), squeeze=False, sharey=True)
+    x = np.arange(len(attributes))
+    for ax, (benchmark, rows) in zip(axes[0], panels.items()):
+        width = 0.8 / max(len(rows), 1)
+        for i, (name, cells) in enumerate(rows.items()):
+            ax.bar(x - 0.4 + (i + 0.5) * width, [100 * cells.get(a, np.nan) for a in attributes], width,
+                   color=colours[name], label=name)
+        ax.set_title(benchmark)
+        ax.set_xticks(x, [a.replace("_", " ") for a in attributes], rotation=30, ha="right")
+        ax.set_ylim(0, 100)
+        ax.grid(axis="y", alpha=0.3)
+        ax.legend(fontsize=7, loc="lower left")
+    axes[0][0].set_ylabel("right (%) of test images")
+    figure.tight_layout()
+    return save_figure(figure, path)

@@ -10,6 +10,8 @@ fits and per-image posteriors already on disk are reused. Writes, in ``out``:
   benchmarks; cells: 5-way 1-shot / 5-way 5-shot / 10-way 1-shot / 10-way 5-shot
   accuracy in %), this project's numbers beside the paper's;
 - ``adi.md`` / ``adi.csv``: mean ADI (metres) per benchmark beside the paper's;
+- ``figures/accuracy.png``: the accuracy table as bars with 95% intervals, the paper's P3 as ticks;
+  ``figures/attributes.png``: how often each row's posteriors name shape, material, size and colour right;
 - ``runs/V``: one evaluation run folder per benchmark, with its own tables and figures;
 - ``timing.json``: the minutes of every benchmark of every invocation.
 
@@ -52,6 +54,8 @@ PAPER_ADI = {"fsclvr": (0.0152, 0.0133), "room": (0.0185, 0.0180), "dark": (0.05
              "ood": (0.0360, 0.0353)}
 COLUMNS = ("fsclvr", "room", "dark", "ood")
 TITLES = {"fsclvr": "FS-CLVR", "room": "ROOM", "dark": "DARK", "ood": "OOD"}
+ATTRIBUTES = {"shape_accuracy": "shape", "shape_accuracy_large": "shape (large)", "material_accuracy": "material",
+              "size_accuracy": "size", "colour_accuracy": "colour"}   # results' attribute keys -> figure labels
 
 
 @dataclass(frozen=True)
@@ -199,8 +203,29 @@ def collect(out: Path) -> dict:
     return found
 
 
+def write_figures(out: Path, panels: dict[str, dict[str, dict]]) -> None:
+    """``figures/accuracy.png`` (accuracy per setting, 95% intervals, the paper's P3 as ticks) and
+    ``figures/attributes.png`` (attribute recovery of the rows that report it), from ``panels``:
+    benchmark -> {row name: its evaluation results}."""
+    from .plots import accuracy_bars, attribute_bars
+
+    names = [setting_name(n, k) for n, k in SETTINGS]
+    accuracy = {TITLES[c]: {row: {n: (r["accuracy"][n]["mean"], r["accuracy"][n]["half_width"])
+                                  for n in names if n in r["accuracy"]} for row, r in rows.items()}
+                for c, rows in panels.items()}
+    reference = {TITLES[c]: [float(v) for v in PAPER_ACCURACY["P3"][c].split("/")] for c in panels}
+    accuracy_bars(out / "figures" / "accuracy.png", accuracy, names, reference)
+    attributes = {TITLES[c]: {row: {name: r["attributes"][key] for key, name in ATTRIBUTES.items()
+                                    if key in r["attributes"]}
+                              for row, r in rows.items() if r.get("attributes")} for c, rows in panels.items()}
+    attributes = {c: rows for c, rows in attributes.items() if rows}
+    if attributes:
+        attribute_bars(out / "figures" / "attributes.png", attributes)
+
+
 def write_paper_tables(out: Path, results: dict) -> None:
-    """The accuracy and ADI tables in the paper's layout, from ``collect``'s runs."""
+    """The accuracy and ADI tables in the paper's layout, from ``collect``'s runs, and their figures
+    (:func:`write_figures`)."""
     variants = sorted({(s, d) for _, s, d in results}, key=lambda v: (_noise_order(v[0]), v[1] or ""))
     models = [(m, s, d) for s, d in variants for m in ("p3", "np3")
               if any(m in r for (_, *v), r in results.items() if tuple(v) == (s, d))]
@@ -218,6 +243,9 @@ def write_paper_tables(out: Path, results: dict) -> None:
                                                for c in COLUMNS])
     for model, numbers in PAPER_ACCURACY.items():
         rows.append([model, "paper"] + [numbers[c] for c in COLUMNS])
+    write_figures(out, {c: {label(m, s, d): get(c, m, s, d) for m, s, d in models if get(c, m, s, d)}
+                        | {model: per[c] for model, per in sorted(found.items()) if c in per}
+                        for c in COLUMNS if any(v == c for v, _, _ in results)})
     note = ("\nCells: 5-way 1-shot / 5-way 5-shot / 10-way 1-shot / 10-way 5-shot accuracy (%). "
             "OOD has 10 test classes. Rows without a note use the paper's likelihood (sigma 1, no outliers, no "
             "shadows); 'fitted noise' rows the noise model fitted to each benchmark's train residuals. Rows "

@@ -37,7 +37,7 @@ def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_
     def result(accuracy: float, adi: float) -> dict:
         cell = {"mean": accuracy, "half_width": 0.01, "ece": 0.1}
         return {"accuracy": {f"{n}-way {k}-shot": cell for n, k in tables.SETTINGS},
-                "adi": {"mean": adi, "median": adi}}
+                "adi": {"mean": adi, "median": adi}, "attributes": {"shape_accuracy": accuracy, "images": 3}}
 
     for name, accuracy in (("fsclvr", 0.5), ("fsclvr-sigma0.1", 0.9), ("fsclvr/distance-colour+class", 0.7),
                            ("fsclvr-sigma0.1/distance-colour", 0.8), ("fsclvr/spread0", 0.6)):
@@ -53,6 +53,7 @@ def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_
     assert any(line.startswith("| P3 (colour+class) | this project | 70.0/70.0/70.0/70.0 |") for line in lines)
     assert any(line.startswith("| P3 (sigma 0.1, colour) | this project | 80.0/80.0/80.0/80.0 |") for line in lines)
     assert any(line.startswith("| P3 (no concept spread) | this project | 60.0/60.0/60.0/60.0 |") for line in lines)
+    assert all((tmp_path / "figures" / f"{name}.png").stat().st_size > 5000 for name in ("accuracy", "attributes"))
     adi = (tmp_path / "adi.md").read_text()
     assert "P3 (sigma 0.1) mean ADI" in adi and "colour" not in adi  # ADI does not depend on the distance
 
