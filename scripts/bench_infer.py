@@ -15,7 +15,11 @@ run resumes), then prints JSON, the settings side by side:
   (``mitsuba-p3 evaluate ... --out OUT/smc-seed0`` adds them), learnt from those posteriors;
 - ``max_r_hat_across_seeds``: per image, the R-hat of shift, scale and colour with each
   seed's run as one chain; the median and the 90th percentile over images;
-- ``log_evidence_spread``: for samplers that estimate an evidence (none of the MH settings).
+- ``log_evidence_spread``: for samplers that estimate an evidence (none of the MH settings), per
+  image the largest spread (max - min across seeds) over hypotheses, median over images;
+  ``log_evidence_spread_leading_hypothesis`` the same for the hypothesis that leads (the one the
+  posterior is made of); ``modal_shape_same_across_seeds`` the share of images whose modal shape
+  every seed agrees on.
 
 Settings: ``smc`` is the default of ``infer`` (tempered SMC over the shape classes,
 the fitted Gaussian noise model with hard shadows); ``smc-robust`` the same with the fitted
@@ -80,6 +84,26 @@ def _evidence_spread(runs: list[dict]) -> float | None:
     return float(np.median(spreads))
 
 
+def _leading_evidence_spread(runs: list[dict]) -> float | None:
+    """Median over images of the spread across seeds of the log evidence of the hypothesis that leads
+    (highest mean log evidence over the seeds): the one that carries the posterior. Printed beside
+    :func:`_evidence_spread`, which takes the worst hypothesis, often one the image rules out."""
+    first = next(iter(runs[0].values()), None)
+    if len(runs) < 2 or first is None or first.log_evidence is None:
+        return None
+    spreads = []
+    for i in runs[0]:
+        evidence = np.stack([run[i].log_evidence for run in runs])          # (seeds, hypotheses)
+        spreads.append(float(np.ptp(evidence[:, int(np.argmax(evidence.mean(axis=0)))])))
+    return float(np.median(spreads))
+
+
+def _modal_shape_agreement(runs: list[dict]) -> float:
+    """Share of images whose modal shape class is the same under every seed."""
+    modal = lambda p: int(np.bincount(np.asarray(p.program.samples["class"], int).ravel()).argmax())  # noqa: E731
+    return float(np.mean([len({modal(run[i]) for run in runs}) == 1 for i in runs[0]]))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dataset", default="data/fsclvr")
@@ -132,6 +156,8 @@ def main() -> None:
             r_hats = [r_hat_across_seeds([run[s.index] for run in runs]) for s in tests]
             entry["max_r_hat_across_seeds_median"] = float(np.median(r_hats))
             entry["max_r_hat_across_seeds_p90"] = float(np.percentile(r_hats, 90))
+            entry["log_evidence_spread_leading_hypothesis"] = _leading_evidence_spread(runs)
+            entry["modal_shape_same_across_seeds"] = _modal_shape_agreement(runs)
         report["settings"][name] = entry
         print(json.dumps({name: entry}), flush=True)
     print(json.dumps(report, indent=1))
