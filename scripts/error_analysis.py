@@ -4,7 +4,9 @@ A benchmark class is (shape, colour, material, size). For every wrong
 prediction in ``RUN/predictions.csv`` this lists the attributes in which the
 true and the predicted class differ, and the most frequent (true -> predicted)
 pairs, so one sees at a glance whether errors come from shape, colour or
-material. The episodes are re-drawn from the data set as evaluation draws them
+material. It then splits the attribute recovery of ``RUN/attributes.csv`` (what each test
+posterior names) by the object's true size: on 120x160 images a small object covers a few
+dozen pixels. The episodes are re-drawn from the data set as evaluation draws them
 by default (seed 0, one query per class), and every query is checked against them.
 
     python scripts/error_analysis.py data/fsclvr results/runs/fsclvr [--likelihood p3] [--top 15]
@@ -63,6 +65,15 @@ def main() -> None:
     print("\n| true class | predicted class | errors |\n|---|---|---|")
     for (truth, predicted), count in pairs.most_common(args.top):
         print(f"| {truth} | {predicted} | {count} |")
+    recovered = [r for r in csv.DictReader(open(args.run / "attributes.csv")) if r["model"] == args.likelihood] \
+        if (args.run / "attributes.csv").is_file() else []
+    if recovered:
+        print("\n| true size | images | " + " | ".join(f"{a} right" for a in ATTRIBUTES) + " |\n|---|---|"
+              + "---|" * len(ATTRIBUTES))
+        for size in sorted({r["size_true"] for r in recovered}):
+            these = [r for r in recovered if r["size_true"] == size]
+            right = [100 * sum(r[f"{a}_true"] == r[f"{a}_decided"] for r in these) / len(these) for a in ATTRIBUTES]
+            print(f"| {size} | {len(these)} | " + " | ".join(f"{v:.1f}%" for v in right) + " |")
 
 
 if __name__ == "__main__":
