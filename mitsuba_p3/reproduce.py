@@ -203,10 +203,10 @@ def collect(out: Path) -> dict:
     return found
 
 
-def write_figures(out: Path, panels: dict[str, dict[str, dict]]) -> None:
-    """``figures/accuracy.png`` (accuracy per setting, 95% intervals, the paper's P3 as ticks) and
-    ``figures/attributes.png`` (attribute recovery of the rows that report it), from ``panels``:
-    benchmark -> {row name: its evaluation results}."""
+def write_figures(out: Path, panels: dict[str, dict[str, dict]], posteriors: dict[str, dict[str, dict]]) -> None:
+    """``figures/accuracy.png`` (accuracy per setting, 95% intervals, the paper's P3 as ticks) from
+    ``panels``, and ``figures/attributes.png`` (attribute recovery) from ``posteriors``: benchmark ->
+    {row name: its evaluation results}, one row per set of posteriors."""
     from .plots import accuracy_bars, attribute_bars
 
     names = [setting_name(n, k) for n, k in SETTINGS]
@@ -217,7 +217,7 @@ def write_figures(out: Path, panels: dict[str, dict[str, dict]]) -> None:
     accuracy_bars(out / "figures" / "accuracy.png", accuracy, names, reference)
     attributes = {TITLES[c]: {row: {name: r["attributes"][key] for key, name in ATTRIBUTES.items()
                                     if key in r["attributes"]}
-                              for row, r in rows.items() if r.get("attributes")} for c, rows in panels.items()}
+                              for row, r in rows.items() if r.get("attributes")} for c, rows in posteriors.items()}
     attributes = {c: rows for c, rows in attributes.items() if rows}
     if attributes:
         attribute_bars(out / "figures" / "attributes.png", attributes)
@@ -243,9 +243,12 @@ def write_paper_tables(out: Path, results: dict) -> None:
                                                for c in COLUMNS])
     for model, numbers in PAPER_ACCURACY.items():
         rows.append([model, "paper"] + [numbers[c] for c in COLUMNS])
+    evaluated = [c for c in COLUMNS if any(v == c for v, _, _ in results)]
     write_figures(out, {c: {label(m, s, d): get(c, m, s, d) for m, s, d in models if get(c, m, s, d)}
-                        | {model: per[c] for model, per in sorted(found.items()) if c in per}
-                        for c in COLUMNS if any(v == c for v, _, _ in results)})
+                        | {model: per[c] for model, per in sorted(found.items()) if c in per} for c in evaluated},
+                  # attributes depend on the posteriors only: one row per (model, noise), not per distance
+                  {c: {label(m, s): get(c, m, s, None) for m, s, d in models if d is None and get(c, m, s, d)}
+                   for c in evaluated})
     note = ("\nCells: 5-way 1-shot / 5-way 5-shot / 10-way 1-shot / 10-way 5-shot accuracy (%). "
             "OOD has 10 test classes. Rows without a note use the paper's likelihood (sigma 1, no outliers, no "
             "shadows); 'fitted noise' rows the noise model fitted to each benchmark's train residuals. Rows "
