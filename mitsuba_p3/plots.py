@@ -271,31 +271,41 @@ def reliability_diagram(path: str | Path, results: dict, settings: Sequence[str]
     return save_figure(figure, path)
 
 
-def accuracy_bars(path: str | Path, panels: dict[str, dict[str, dict]], settings: Sequence[str],
-                  reference: dict[str, Sequence[float]] | None = None) -> Path:
-    """Few-shot accuracy per setting as grouped bars, one panel per benchmark. ``panels``: benchmark ->
-    {row name: {setting: (mean, 95% half-width)}}; ``reference``: benchmark -> one accuracy per setting
-    (the paper's P3, drawn as black ticks)."""
+def _bar_panels(panels: dict[str, dict[str, dict]], categories: Sequence[str], ticks: Sequence[str],
+                height: float):
+    """Grouped bars, one panel per key of ``panels`` (-> {row name: {category: (value, error)}}), one
+    group per category, one colour per row name across panels; values in [0, 1], drawn in %."""
     plt = _pyplot()
     names = list(dict.fromkeys(row for rows in panels.values() for row in rows))
     colours = {name: plt.cm.tab10(i % 10) for i, name in enumerate(names)}
-    figure, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.6), squeeze=False, sharey=True)
-    x = np.arange(len(settings))
-    for ax, (benchmark, rows) in zip(axes[0], panels.items()):
+    figure, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), height), squeeze=False, sharey=True)
+    x = np.arange(len(categories))
+    for ax, (title, rows) in zip(axes[0], panels.items()):
         width = 0.8 / max(len(rows), 1)
         for i, (name, cells) in enumerate(rows.items()):
-            means = [100 * cells.get(s, (np.nan, 0))[0] for s in settings]
-            errors = [100 * cells.get(s, (np.nan, 0))[1] for s in settings]
-            ax.bar(x - 0.4 + (i + 0.5) * width, means, width, yerr=errors, capsize=2, color=colours[name],
-                   label=name)
-        if reference and benchmark in reference:
-            ax.scatter(x, reference[benchmark], marker="_", s=400, color="black", zorder=3, label="paper P3")
-        ax.set_title(benchmark)
-        ax.set_xticks(x, [s.replace("-way ", "w").replace("-shot", "s") for s in settings])
+            values, errors = np.array([cells.get(c, (np.nan, 0.0)) for c in categories], np.float64).T
+            ax.bar(x - 0.4 + (i + 0.5) * width, 100 * values, width, yerr=100 * errors if errors.any() else None,
+                   capsize=2, color=colours[name], label=name)
+        ax.set_title(title)
+        ax.set_xticks(x, ticks)
         ax.set_ylim(0, 100)
         ax.grid(axis="y", alpha=0.3)
-    axes[0][0].set_ylabel("accuracy (%), 95% interval")
-    handles = {h.get_label(): h for ax in axes[0] for h in ax.get_legend_handles_labels()[0]}
+    return figure, axes[0]
+
+
+def accuracy_bars(path: str | Path, panels: dict[str, dict[str, dict]], settings: Sequence[str],
+                  reference: dict[str, Sequence[float]] | None = None) -> Path:
+    """Few-shot accuracy per setting as grouped bars, one panel per benchmark. ``panels``: benchmark ->
+    {row name: {setting: (mean, 95% half-width)}}; ``reference``: benchmark -> one accuracy (%) per
+    setting (the paper's P3, drawn as black ticks)."""
+    figure, axes = _bar_panels(panels, settings, [s.replace("-way ", "w").replace("-shot", "s") for s in settings],
+                               3.6)
+    for ax, benchmark in zip(axes, panels):
+        if reference and benchmark in reference:
+            ax.scatter(np.arange(len(settings)), reference[benchmark], marker="_", s=400, color="black", zorder=3,
+                       label="paper P3")
+    axes[0].set_ylabel("accuracy (%), 95% interval")
+    handles = {h.get_label(): h for ax in axes for h in ax.get_legend_handles_labels()[0]}
     lines = -(-len(handles) // 4)
     figure.tight_layout(rect=(0, 0.06 * lines, 1, 1))
     figure.legend(handles.values(), handles.keys(), loc="lower center", ncol=min(len(handles), 4), fontsize=8)
@@ -305,22 +315,12 @@ def accuracy_bars(path: str | Path, panels: dict[str, dict[str, dict]], settings
 def attribute_bars(path: str | Path, panels: dict[str, dict[str, dict]]) -> Path:
     """Attribute recovery (share of test images whose posterior names the attribute right) as bars,
     one panel per benchmark; ``panels``: benchmark -> {row name: {attribute: accuracy}}."""
-    plt = _pyplot()
     attributes = list(dict.fromkeys(a for rows in panels.values() for cells in rows.values() for a in cells))
-    names = list(dict.fromkeys(row for rows in panels.values() for row in rows))
-    colours = {name: plt.cm.tab10(i % 10) for i, name in enumerate(names)}
-    figure, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.4), squeeze=False, sharey=True)
-    x = np.arange(len(attributes))
-    for ax, (benchmark, rows) in zip(axes[0], panels.items()):
-        width = 0.8 / max(len(rows), 1)
-        for i, (name, cells) in enumerate(rows.items()):
-            ax.bar(x - 0.4 + (i + 0.5) * width, [100 * cells.get(a, np.nan) for a in attributes], width,
-                   color=colours[name], label=name)
-        ax.set_title(benchmark)
-        ax.set_xticks(x, [a.replace("_", " ") for a in attributes], rotation=30, ha="right")
-        ax.set_ylim(0, 100)
-        ax.grid(axis="y", alpha=0.3)
+    figure, axes = _bar_panels({b: {row: {a: (v, 0.0) for a, v in cells.items()} for row, cells in rows.items()}
+                                for b, rows in panels.items()}, attributes, attributes, 3.4)
+    for ax in axes:
+        ax.tick_params(axis="x", labelrotation=30)
         ax.legend(fontsize=7, loc="lower left")
-    axes[0][0].set_ylabel("right (%) of test images")
+    axes[0].set_ylabel("right (%) of test images")
     figure.tight_layout()
     return save_figure(figure, path)
