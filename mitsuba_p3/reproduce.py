@@ -277,7 +277,7 @@ def write_paper_tables(out: Path, results: dict) -> None:
     header = ["benchmark"] + [f"{label(m, s)} mean ADI (m)" for m, s in pose_models] + ["paper P3 / NP3"]
     adi = lambda c, m, s: f"{get(c, m, s, None)['adi']['mean']:.4f}" if get(c, m, s, None) else "-"  # noqa: E731
     rows = [[TITLES[c]] + [adi(c, m, s) for m, s in pose_models] + [f"{PAPER_ADI[c][0]:.4f} / {PAPER_ADI[c][1]:.4f}"]
-            for c in COLUMNS if any(v == c for v, _, _ in results)]
+            for c in evaluated]
     atomic_write(out / "adi.md", markdown_table(header, rows))
     with atomic_open(out / "adi.csv") as f:
         writer = csv.writer(f)

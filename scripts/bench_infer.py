@@ -75,27 +75,28 @@ def r_hat_across_seeds(runs: list[CachedPosterior]) -> float:
     return worst
 
 
-def _evidence_spread(runs: list[dict]) -> float | None:
-    """Median over images of the largest (over hypotheses) spread (max - min) of log evidence across seeds."""
+def _evidence_per_image(runs: list[dict]) -> list[np.ndarray] | None:
+    """Per image, the log evidence of every hypothesis under every seed, (seeds, hypotheses); None
+    for samplers without an evidence or a single seed."""
     first = next(iter(runs[0].values()), None)
     if len(runs) < 2 or first is None or first.log_evidence is None:
         return None
-    spreads = [float(np.max(np.ptp(np.stack([run[i].log_evidence for run in runs]), axis=0))) for i in runs[0]]
-    return float(np.median(spreads))
+    return [np.stack([run[i].log_evidence for run in runs]) for i in runs[0]]
+
+
+def _evidence_spread(runs: list[dict]) -> float | None:
+    """Median over images of the largest (over hypotheses) spread (max - min) of log evidence across seeds."""
+    evidence = _evidence_per_image(runs)
+    return None if evidence is None else float(np.median([np.max(np.ptp(e, axis=0)) for e in evidence]))
 
 
 def _leading_evidence_spread(runs: list[dict]) -> float | None:
     """Median over images of the spread across seeds of the log evidence of the hypothesis that leads
     (highest mean log evidence over the seeds): the one that carries the posterior. Printed beside
     :func:`_evidence_spread`, which takes the worst hypothesis, often one the image rules out."""
-    first = next(iter(runs[0].values()), None)
-    if len(runs) < 2 or first is None or first.log_evidence is None:
-        return None
-    spreads = []
-    for i in runs[0]:
-        evidence = np.stack([run[i].log_evidence for run in runs])          # (seeds, hypotheses)
-        spreads.append(float(np.ptp(evidence[:, int(np.argmax(evidence.mean(axis=0)))])))
-    return float(np.median(spreads))
+    evidence = _evidence_per_image(runs)
+    return None if evidence is None else float(
+        np.median([np.ptp(e[:, int(np.argmax(e.mean(axis=0)))]) for e in evidence]))
 
 
 def _modal_shape_agreement(runs: list[dict]) -> float:
