@@ -15,9 +15,9 @@ fits and per-image posteriors already on disk are reused. Writes, in ``out``:
 - ``runs/V``: one evaluation run folder per benchmark, with its own tables and figures;
 - ``timing.json``: the minutes of every benchmark of every invocation.
 
-The default likelihood is the paper's; runs with each model's fitted noise model
-go to ``runs/V-fitted``, with another sigma to ``runs/V-sigmaS``, and get their
-own rows; another distance scores the same posteriors and its tables go to
+The default likelihood is each model's fitted noise model, sampled by SMC (its runs go to
+``runs/V-fitted``); the paper's (``noise="paper"``, sigma 1, MH at the evaluation preset)
+to ``runs/V``, with another sigma to ``runs/V-sigmaS``; each gets its own rows; another distance scores the same posteriors and its tables go to
 ``runs/V/distance-TERMS`` (rows such as "NP3 (colour+class)"). Baselines
 evaluated into ``runs/V`` (``mitsuba-p3 baseline evaluate TRAINED data/V --out
 OUT/runs/V``) join the accuracy table.
@@ -35,7 +35,7 @@ from typing import Callable
 
 from .benchmarks.protocol import VARIANTS
 from .errors import ConfigError
-from .evaluate import PRESET, SETTINGS, EvaluationConfig, evaluate, load_baselines, markdown_table, setting_name
+from .evaluate import SETTINGS, EvaluationConfig, evaluate, load_baselines, markdown_table, setting_name
 from .evaluate.run import sample_spread
 from .files import atomic_json, atomic_open, atomic_write
 from .infer.likelihood import NOISES
@@ -60,10 +60,11 @@ ATTRIBUTES = {"shape_accuracy": "shape", "shape_accuracy_large": "shape (large)"
 
 @dataclass(frozen=True)
 class ReproduceConfig:
-    """Which benchmarks, and how each is evaluated (the sampler defaults to :data:`~mitsuba_p3.evaluate.PRESET`)."""
+    """Which benchmarks, and how each is evaluated (by default: the fitted noise model and SMC;
+    the paper's rows need ``EvaluationConfig(noise="paper", sampler=PRESET)``)."""
 
     benchmarks: tuple = COLUMNS
-    evaluation: EvaluationConfig = field(default_factory=lambda: EvaluationConfig(sampler=PRESET))
+    evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     resolution: tuple | None = None    # (H, W) of generated benchmarks; None: the benchmark's default
 
     def __post_init__(self):

@@ -13,7 +13,7 @@ If the true shape wins here but not in the posterior, the sampler is what misses
 (it does not reach the true pose and material of the true shape); if it loses
 here, the renderer and likelihood cannot tell the shapes apart.
 
-    python scripts/shape_at_truth.py --dataset data/fsclvr --model data/models/fsclvr [--split train] [--every 3]
+    python scripts/shape_at_truth.py --dataset data/fsclvr --model data/models/fsclvr [--split train] [--every 3] [--size small]
 
 With ``--smc`` it also runs the default SMC on each image and prints, per shape, the
 log likelihood at the truth (the best least-squares material, under the model's fitted
@@ -41,6 +41,7 @@ def main() -> None:
     parser.add_argument("--model", default="data/models/fsclvr")
     parser.add_argument("--split", default="train", choices=("train", "test"))
     parser.add_argument("--every", type=int, default=3, help="every n-th image of the split")
+    parser.add_argument("--size", choices=("small", "large"), help="only objects of this size")
     parser.add_argument("--shininess", default="4,64", help="shininess values tried per shape")
     parser.add_argument("--smc", action="store_true", help="compare with the default SMC's evidence, per image")
     args = parser.parse_args()
@@ -52,7 +53,8 @@ def main() -> None:
     start_material = {"colour": np.full(3, 0.5, np.float32), "ambient": np.float32(0.3),
                       "diffuse": np.float32(0.5), "specular": np.float32(0.2)}
     wins, margins, per_shape = [], [], {shape: [] for shape in SHAPES}
-    for shot in dataset.split(args.split)[::args.every]:
+    shots = [s for s in dataset.split(args.split) if args.size in (None, s.cls.size)]
+    for shot in shots[::args.every]:
         observed = dataset.image(shot)
         errors, materials = [], []
         for k in range(len(SHAPES)):
@@ -100,7 +102,8 @@ def compare_smc(fitted: FittedModel, dataset, shot, observed: np.ndarray, truths
              **{name: np.array([truth[name]]) for name in ("ambient", "diffuse", "specular", "shininess")}}
         z = jnp.asarray(core.prior.unconstrain(x)[0], jnp.float32)
         row[shape] = {"log_likelihood_at_truth": round(float(core.log_likelihood(z, observation)), 1),
-                      "smc_log_evidence": round(run.statistics["hypotheses"][shape]["log_evidence"], 1)}
+                      "smc_log_evidence": round(run.statistics["hypotheses"][shape]["log_evidence"], 1),
+                      "smc_max_log_likelihood": round(run.statistics["hypotheses"][shape]["max_log_likelihood"], 1)}
     return row
 
 

@@ -455,9 +455,13 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
     for h, name in enumerate(space.names):
         mine = rows.index == h
         share = row_weights[mine] / max(row_weights[mine].sum(), 1e-300)
+        best = loglik[mine]
         statistics["hypotheses"][name] = {"log_evidence": float(pooled[h]), "weight": float(weights[h]),
                                           "shiny": float(np.sum(shiny_rows[mine] * share)),
-                                          "runs": int(mine.sum())}
+                                          "runs": int(mine.sum()),
+                                          # the highest log likelihood any final particle reached: beside the
+                                          # likelihood at the truth it tells a run that missed the peak
+                                          "max_log_likelihood": float(best.max()) if best.size else None}
     return SamplerRun(positions.astype(np.float32), logdensity.astype(np.float32),
                       np.ones((chains, per_chain), bool), {}, [{"acceptance": a} for a in rows.acceptance],
                       {"sampler": "smc", **asdict(config)}, statistics)
