@@ -92,8 +92,10 @@ def compare_smc(fitted: FittedModel, dataset, shot, observed: np.ndarray, truths
 
     core = PosteriorCore.shared(fitted, default_likelihood(fitted, "p3", noise="fitted"), "mitsuba",
                                 *dataset.resolution)
-    observation = core.observe(observed)
-    run = sample_smc(core, observation)
+    run = sample_smc(core, core.observe(observed))
+    # the truth is scored on the pixels the SMC scored (its window around the footprint, if any)
+    window = run.statistics["window"]
+    observation = core.observe(observed, tuple(window) if window else None)
     row = {"image": shot.file.name, "class": shot.class_name}
     for k, (shape, truth) in enumerate(zip(SHAPES, truths)):
         x = {"shift": truth["shift"][None], "theta": np.array([truth["theta"]]), "scale": truth["scale"][None],
