@@ -10,7 +10,9 @@ evaluation run (``mitsuba-p3 evaluate`` caches them for the concept spread):
   train posteriors beside it);
 - ``posteriors``: learnt from the train posteriors themselves, whose kinds the labels
   give, so the classifier sees at training the kind of input it is applied to; the rule
-  ``mitsuba-p3 evaluate`` uses, since its runs hold train posteriors for the concept spread.
+  ``mitsuba-p3 evaluate`` uses, since its runs hold train posteriors for the concept spread;
+- ``posteriors+saturation``: the same with the saturation of the posterior's median
+  reflectance as a fifth feature.
 
 Each train class is held out in turn: the ``posteriors`` rule is learnt on the other
 classes' posteriors and scored on the held-out class's (the ``fit`` rule is fixed).
@@ -46,13 +48,16 @@ def main() -> None:
     programs = {name: p for name, p in cached_train_programs(dataset, args.run, args.likelihood).items() if p}
     if not programs:
         raise SystemExit(f"{args.run} holds no cached train posteriors for {args.likelihood}")
-    right = {"fit": [], "posteriors": []}
+    right = {"fit": [], "posteriors": [], "posteriors+saturation": []}
     for held in programs:
-        learnt = rules_learnt_from(fit_rules, {n: ps for n, ps in programs.items() if n != held}, labels)
+        others = {n: ps for n, ps in programs.items() if n != held}
+        learnt = rules_learnt_from(fit_rules, others, labels)
+        saturated = rules_learnt_from(fit_rules, others, labels, "weights+saturation")
         for program in programs[held]:
             truth = labels[held].material
             right["fit"].append(fit_rules.decide(program.samples)["material"] == truth)
             right["posteriors"].append(learnt.decide(program.samples)["material"] == truth)
+            right["posteriors+saturation"].append(saturated.decide(program.samples)["material"] == truth)
     print(json.dumps({"run": args.run, "likelihood": args.likelihood, "classes": len(programs),
                       "posteriors": len(right["fit"]),
                       "material_accuracy": {k: round(float(np.mean(v)), 3) for k, v in right.items()}}, indent=2))

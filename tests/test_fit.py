@@ -427,6 +427,40 @@ def test_material_rule_learnt_from_train_posteriors_sees_what_posteriors_say():
     assert fit_rules.with_material_from_posteriors(metals, ["metal"] * 6) is fit_rules
 
 
+def test_material_rule_with_saturation_tells_kinds_whose_weights_agree():
+    """Train posteriors whose Phong weights are alike but whose colours are pale (metals) or vivid
+    (rubbers): the rule on the weights alone cannot tell them apart, the rule with the reflectance's
+    saturation can; an unknown feature set is refused."""
+    from mitsuba_p3.fit.attributes import AttributeRules, saturation
+
+    np.testing.assert_allclose(saturation(np.array([[1.0, 0.5, 0.0], [0.4, 0.4, 0.4], [0.0, 0.0, 0.0]])),
+                               [1.0, 0.0, 0.0])
+
+    def posterior(colour, rng, n=40):
+        jitter = lambda v: np.abs(v + 0.02 * rng.standard_normal((n, 1)))  # noqa: E731
+        return {"class": np.zeros(n, int), "scale": np.full((n, 3), 0.03), "colour": np.tile(colour, (n, 1)),
+                "ambient": jitter(0.4), "diffuse": jitter(0.5), "specular": jitter(0.2),
+                "shininess": np.full((n, 1), 5.0)}
+
+    rules = AttributeRules.from_materials({"red-rubber": {"colour": [0.8, 0.2, 0.2], "ambient": 0.4, "diffuse": 0.5,
+                                                          "specular": 0.2, "shininess": 5.0}})
+    rng = np.random.default_rng(0)
+    pale = [(0.8, 0.6, 0.6), (0.6, 0.6, 0.8), (0.6, 0.8, 0.6)]
+    vivid = [(0.8, 0.1, 0.1), (0.1, 0.1, 0.8), (0.1, 0.8, 0.1)]
+    samples = [posterior(c, rng) for c in pale * 2] + [posterior(c, rng) for c in vivid * 2]
+    kinds = ["metal"] * 6 + ["rubber"] * 6
+    queries = [(posterior((0.7, 0.7, 0.55), rng), "metal") for _ in range(10)] + \
+        [(posterior((0.7, 0.7, 0.05), rng), "rubber") for _ in range(10)]
+
+    def right(rule):
+        return sum(rule.decide(query)["material"] == kind for query, kind in queries)
+
+    assert right(rules.with_material_from_posteriors(samples, kinds, "weights+saturation")) == 20
+    assert right(rules.with_material_from_posteriors(samples, kinds)) <= 15     # the weights alone: about chance
+    with pytest.raises(ValueError, match="material features"):
+        rules.with_material_from_posteriors(samples, kinds, "hue")
+
+
 @pytest.mark.parametrize("name, damage", [("model.json", b""), ("priors.json", b'{"gmms": {'),
                                           ("scene.npz", None), ("features.json", None), ("noise.json", b"[]")])
 def test_a_damaged_model_folder_is_one_line_naming_the_refit(tiny_model, tmp_path, name, damage):

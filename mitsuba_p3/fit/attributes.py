@@ -35,11 +35,26 @@ from ..shapes import SHAPES
 KINDS = ("rubber", "metal")
 
 
-def _weights(rows) -> np.ndarray:
-    """(n, 4) features of Phong weights: k_a, k_d, k_s, log alpha."""
+# The material rule's inputs: the Phong weights, or the weights and the saturation of the reflectance
+# (a white highlight that Phong's lobe does not fully explain pales a metal's fitted colour).
+MATERIAL_FEATURES = ("weights", "weights+saturation")
+
+
+def _weights(rows, features: str = "weights") -> np.ndarray:
+    """(n, 4) features of Phong weights: k_a, k_d, k_s, log alpha; with ``weights+saturation`` (n, 5),
+    the reflectance's saturation after them (rows then need ``saturation``)."""
+    if features not in MATERIAL_FEATURES:
+        raise ValueError(f"unknown material features {features!r}; choose {' or '.join(MATERIAL_FEATURES)}")
     rows = list(rows)
     return np.array([[r["ambient"], r["diffuse"], r["specular"], np.log(max(r["shininess"], 1e-3))]
-                     for r in rows], np.float64)
+                     + ([r["saturation"]] if features == "weights+saturation" else []) for r in rows], np.float64)
+
+
+def saturation(rgb: np.ndarray) -> np.ndarray:
+    """HSV saturation (max - min) / max of rgb (..., 3); 0 for black."""
+    rgb = np.maximum(np.asarray(rgb, np.float64), 0.0)
+    top = rgb.max(axis=-1)
+    return np.where(top > 1e-9, (top - rgb.min(axis=-1)) / np.maximum(top, 1e-9), 0.0)
 
 
 def reflectance(material) -> np.ndarray:
@@ -65,6 +80,7 @@ class AttributeRules:
     only_kind: str | None                    # the kind when training had just one
     colour_names: list[str]                  # per reference: its colour name
     colour_albedos: np.ndarray               # (references, 3) chromaticities of the train materials
+    material_features: str = "weights"       # the material model's inputs (MATERIAL_FEATURES)
 
     @classmethod
     def from_materials(cls, materials: dict[str, dict], extra_colours: dict[str, tuple] | None = None
@@ -84,7 +100,8 @@ class AttributeRules:
                 centres.append(chromaticity(np.asarray(rgb, np.float64)))
         return cls(model, only, names, np.array(centres, np.float64))
 
-    def with_material_from_posteriors(self, samples: list[dict], kinds: list[str]) -> "AttributeRules":
+    def with_material_from_posteriors(self, samples: list[dict], kinds: list[str], features: str = "weights"
+                                      ) -> "AttributeRules":
         """The same rules with the material kind learnt from posteriors of *train* images (their
         samples and labelled kinds) instead of the fit's materials: the classifier then sees at
         training the same kind of input, posterior medians, that it is applied to. Unchanged when
@@ -93,7 +110,8 @@ class AttributeRules:
 
         if len(set(kinds) & set(KINDS)) < 2:
             return self
-        return replace(self, material_model=material_classifier(_weights(_medians(s) for s in samples), kinds))
+        return replace(self, material_features=features,
+                       material_model=material_classifier(_weights((_medians(s) for s in samples), features), kinds))
 
     def decide(self, samples: dict) -> dict:
         """Attribute names (and the shape's posterior probabilities) from posterior samples:
@@ -102,7 +120,7 @@ class AttributeRules:
         shape_probabilities = counts / counts.sum()
         medians = _medians(samples)
         if self.material_model is not None:
-            metal = float(self.material_model.predict_proba(_weights([medians]))[0, 1])
+            metal = float(self.material_model.predict_proba(_weights([medians], self.material_features))[0, 1])
             kind = KINDS[int(metal > 0.5)]
         else:
             kind, metal = self.only_kind, float(self.only_kind == "metal")
@@ -115,7 +133,10 @@ class AttributeRules:
 
 
 def _medians(samples: dict) -> dict:
-    return {k: float(np.median(samples[k])) for k in ("ambient", "diffuse", "specular", "shininess")}
+    """Posterior medians of the Phong weights, and the saturation of the median reflectance."""
+    medians = {k: float(np.median(samples[k])) for k in ("ambient", "diffuse", "specular", "shininess")}
+    medians["saturation"] = float(saturation(np.median(reflectance(samples), axis=0)))
+    return medians
 
 
 def material_classifier(features: np.ndarray, kinds: list[str]):
