@@ -235,10 +235,9 @@ def write_paper_tables(out: Path, results: dict) -> None:
     rows = [[label(m, s, d), "this project"] + [cells(get(c, m, s, d)) if get(c, m, s, d) else "-" for c in COLUMNS]
             for m, s, d in models]
     found = {}
-    for c, s, d in results:
-        if s is None and d is None:
-            for baseline in load_baselines(out / "runs" / c):
-                found.setdefault(baseline["model"], {})[c] = baseline
+    for c in COLUMNS:        # baselines are scored into runs/V, whether or not it holds a P3 run
+        for baseline in load_baselines(out / "runs" / c):
+            found.setdefault(baseline["model"], {})[c] = baseline
     for model, per_benchmark in sorted(found.items()):
         rows.append([model, "this project"] + [cells(per_benchmark[c]) if c in per_benchmark else "-"
                                                for c in COLUMNS])

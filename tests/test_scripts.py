@@ -43,11 +43,16 @@ def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_
                            ("fsclvr-sigma0.1/distance-colour", 0.8), ("fsclvr/spread0", 0.6)):
         (tmp_path / "runs" / name).mkdir(parents=True)
         (tmp_path / "runs" / name / "results.json").write_text(json.dumps({"results": {"p3": result(accuracy, 0.01)}}))
+    # a baseline scored into runs/room, where no P3 run is (the P3 runs of a benchmark may all be fitted-noise ones)
+    (tmp_path / "runs" / "room" / "baselines").mkdir(parents=True)
+    (tmp_path / "runs" / "room" / "baselines" / "protonets-56.json").write_text(
+        json.dumps({"model": "ProtoNets 56", **result(0.4, 0.0)}))
     found = tables.collect(tmp_path)
     assert set(found) == {("fsclvr", None, None), ("fsclvr", 0.1, None), ("fsclvr", None, "colour+class"),
                           ("fsclvr", 0.1, "colour"), ("fsclvr", None, "spread0")}
     tables.write_paper_tables(tmp_path, found)
     lines = (tmp_path / "accuracy.md").read_text().splitlines()
+    assert any(line.startswith("| ProtoNets 56 | this project | - | 40.0/40.0/40.0/40.0 |") for line in lines)
     assert any(line.startswith("| P3 | this project | 50.0/50.0/50.0/50.0 |") for line in lines)
     assert any(line.startswith("| P3 (sigma 0.1) | this project | 90.0/90.0/90.0/90.0 |") for line in lines)
     assert any(line.startswith("| P3 (colour+class) | this project | 70.0/70.0/70.0/70.0 |") for line in lines)

@@ -7,7 +7,9 @@ metal sphere?". :class:`AttributeRules` turns posterior samples into those words
 - **material kind** (rubber or metal): a logistic regression on the Phong
   weights (k_a, k_d, k_s, log alpha), learnt from the materials the fit
   optimised on the *train* classes, whose kinds the labels give; applied to the
-  posterior medians;
+  posterior medians. An evaluation, which holds train posteriors, learns it from
+  those instead (:meth:`AttributeRules.with_material_from_posteriors`), with the
+  saturation of the median reflectance as a fifth feature;
 - **size** (small or large): the protocol size nearest, in log space, to the
   median of the posterior's half-extents;
 - **colour**: the colour name of the fitted train material whose *chromaticity*
