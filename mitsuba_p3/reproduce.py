@@ -17,7 +17,8 @@ fits and per-image posteriors already on disk are reused. Writes, in ``out``:
 
 The default likelihood is each model's fitted noise model, sampled by SMC (its runs go to
 ``runs/V-fitted``); the paper's (``noise="paper"``, sigma 1, MH at the evaluation preset)
-to ``runs/V``, with another sigma to ``runs/V-sigmaS``; each gets its own rows; another distance scores the same posteriors and its tables go to
+to ``runs/V``, with another sigma to ``runs/V-sigmaS``; each gets its own rows. Another
+distance scores the same posteriors and its tables go to
 ``runs/V/distance-TERMS`` (rows such as "NP3 (colour+class)"). Baselines
 evaluated into ``runs/V`` (``mitsuba-p3 baseline evaluate TRAINED data/V --out
 OUT/runs/V``) join the accuracy table.
