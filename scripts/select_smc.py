@@ -75,7 +75,8 @@ def main() -> None:
                               if h.split("/")[0] == shot.cls.shape))
             print(f"{name} {i + 1}/{len(shots)} {shot.class_name}: {'ok' if right[-1] else 'WRONG'} "
                   f"{seconds[-1]:.1f} s", flush=True)
-        report[name] = {"shape": float(np.mean(right)), "material": float(np.mean(material)), "log_p_true": float(np.mean(log_true)),
+        report[name] = {"shape": float(np.mean(right)), "material": float(np.mean(material)),
+                        "log_p_true": float(np.mean(log_true)),
                         "mean_log_z_true": float(np.mean(z_true)),
                         "seconds": {"median": float(np.median(seconds)), "mean": float(np.mean(seconds))},
                         "config": {k: v for k, v in vars(config).items() if v != getattr(SMCConfig(), k)}}

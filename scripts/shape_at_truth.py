@@ -9,9 +9,12 @@ shape has the lowest error (overall and per true shape), and the median margin t
 the runner-up in squared error and in nats under the model's fitted Gaussian noise
 (margin * beta / (2 sigma^2)).
 
-If the true shape wins here but not in the posterior, the sampler is what misses
+If the true shape wins here but not in the posterior, the sampler may be what misses
 (it does not reach the true pose and material of the true shape); if it loses
-here, the renderer and likelihood cannot tell the shapes apart.
+here, the renderer and likelihood cannot tell the shapes apart. The wrong shapes are
+scored at the *true* pose too, where they are not at their best, so the margin here
+overstates what the image holds: with ``--smc``, compare each shape's best particle
+(``smc_max_log_likelihood``) with the truth's likelihood on the same pixels.
 
     python scripts/shape_at_truth.py --dataset data/fsclvr --model data/models/fsclvr [--split train] [--every 3] [--size small]
 
