@@ -112,3 +112,29 @@ def test_train_baselines_trains_scores_and_resumes(tmp_path):
     assert again.returncode == 0, again.stderr
     assert json.loads(again.stdout.strip().splitlines()[-1])["iterations"] == 4
     assert result.stat().st_mtime_ns == written
+
+
+def test_probe_resolution_reads_only_the_rendered_train_images(tmp_path):
+    """scripts/probe_resolution.py's view of a benchmark still rendering: the train images on disk,
+    with their labels; test images and missing train images left out, the scene file kept."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "probe_resolution.py"
+    spec = importlib.util.spec_from_file_location("probe_resolution", path)
+    probe = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(probe)
+    root = tmp_path / "bench"
+    records = [{"file": f"{split}/c/{i}.png", "split": split} for split in ("train", "test") for i in range(3)]
+    (root / "train" / "c").mkdir(parents=True)
+    (root / "test" / "c").mkdir(parents=True)
+    for record in records[:2] + records[3:]:                  # train/c/2.png is not rendered yet
+        (root / record["file"]).write_bytes(b"png")
+    (root / "labels.json").write_text(json.dumps({"format": "x", "images": records}))
+    (root / "scene.xml").write_text("<scene/>")
+    (tmp_path / "views").mkdir()
+    view = probe.train_view(root, tmp_path / "views")
+    kept = json.loads((view / "labels.json").read_text())["images"]
+    assert [r["file"] for r in kept] == ["train/c/0.png", "train/c/1.png"]
+    assert (view / "train" / "c" / "1.png").read_bytes() == b"png" and not (view / "test").exists()
+    assert (view / "scene.xml").is_file()
