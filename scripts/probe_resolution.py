@@ -37,8 +37,7 @@ from mitsuba_p3.fit.model import FittedModel, empty_render, render_train_split
 from mitsuba_p3.fit.noise import fit_noise
 from mitsuba_p3.infer.model import PosteriorCore
 from mitsuba_p3.infer.posterior import default_likelihood
-from mitsuba_p3.infer.smc import SMCConfig, sample_smc
-from mitsuba_p3.shapes import SHAPES
+from mitsuba_p3.infer.smc import SMCConfig, sample_smc, shape_weights
 
 
 def train_view(root: Path, into: Path) -> Path:
@@ -79,11 +78,10 @@ def run(fitted: FittedModel, dataset, shots, config: SMCConfig) -> dict:
         start = time.perf_counter()
         result = sample_smc(core, core.observe(dataset.image(shot)), config)
         seconds.append(time.perf_counter() - start)
-        hypotheses = result.statistics["hypotheses"]
-        weights = {shape: hypotheses[shape]["weight"] for shape in SHAPES}
+        weights = shape_weights(result.statistics)
         modal = max(weights, key=weights.get)
         right.append(modal == shot.cls.shape)
-        material.append((hypotheses[modal]["shiny"] > 0.5) == (shot.cls.material == "metal"))
+        material.append((result.statistics["hypotheses"][modal]["shiny"] > 0.5) == (shot.cls.material == "metal"))
         log_true.append(float(np.log(max(weights[shot.cls.shape], 1e-12))))
         print(f"{dataset.resolution} {shot.class_name}/{shot.shot}: {modal} "
               f"({'ok' if right[-1] else 'WRONG'}) {seconds[-1]:.1f} s", flush=True)

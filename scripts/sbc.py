@@ -23,8 +23,7 @@ from mitsuba_p3.files import atomic_json
 from mitsuba_p3.fit.model import FittedModel
 from mitsuba_p3.infer.likelihood import LikelihoodConfig
 from mitsuba_p3.infer.model import PosteriorCore
-from mitsuba_p3.infer.smc import SMCConfig, sample_smc
-from mitsuba_p3.shapes import SHAPES
+from mitsuba_p3.infer.smc import SMCConfig, sample_smc, shape_weights
 
 
 def smc_sampler(core, config: SMCConfig):
@@ -33,9 +32,7 @@ def smc_sampler(core, config: SMCConfig):
 
     def sample(observation, seed):
         run = sample_smc(core, observation, replace(config, seed=seed))
-        probabilities = np.zeros(len(SHAPES))
-        for name, h in run.statistics["hypotheses"].items():
-            probabilities[SHAPES.index(name.split("/")[0])] += h["weight"]
+        probabilities = np.array(list(shape_weights(run.statistics).values()))
         return run.positions.reshape(-1, run.positions.shape[-1]), probabilities
 
     return sample

@@ -24,8 +24,7 @@ from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.fit.model import FittedModel
 from mitsuba_p3.infer.model import PosteriorCore
 from mitsuba_p3.infer.posterior import default_likelihood
-from mitsuba_p3.infer.smc import SMCConfig, sample_smc
-from mitsuba_p3.shapes import SHAPES
+from mitsuba_p3.infer.smc import SMCConfig, sample_smc, shape_weights
 
 
 def size_class(scale: np.ndarray, sizes: dict[str, float]) -> str:
@@ -64,9 +63,7 @@ def main() -> None:
             start = time.perf_counter()
             run = sample_smc(core, core.observe(dataset.image(shot)), config)
             seconds.append(time.perf_counter() - start)
-            weights = {name.split("/")[0]: 0.0 for name in SHAPES}
-            for name, h in run.statistics["hypotheses"].items():
-                weights[name.split("/")[0]] += h["weight"]
+            weights = shape_weights(run.statistics)
             shape_right.append(max(weights, key=weights.get) == shot.cls.shape)
             log_true.append(float(np.log(max(weights[shot.cls.shape], 1e-12))))
             scale = np.exp(run.positions[..., 3:6].reshape(-1, 3)).mean(axis=0)

@@ -33,8 +33,7 @@ from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.fit.model import FittedModel
 from mitsuba_p3.infer.model import PosteriorCore
 from mitsuba_p3.infer.posterior import default_likelihood
-from mitsuba_p3.infer.smc import SMCConfig, sample_smc
-from mitsuba_p3.shapes import SHAPES
+from mitsuba_p3.infer.smc import SMCConfig, sample_smc, shape_weights
 
 
 def main() -> None:
@@ -63,9 +62,7 @@ def main() -> None:
             start = time.perf_counter()
             run = sample_smc(core, core.observe(dataset.image(shot)), config)
             seconds.append(time.perf_counter() - start)
-            weights = {shape: 0.0 for shape in SHAPES}
-            for hypothesis, value in run.statistics["hypotheses"].items():
-                weights[hypothesis.split("/")[0]] += value["weight"]
+            weights = shape_weights(run.statistics)
             modal = max(weights, key=weights.get)
             right.append(modal == shot.cls.shape)
             shiny = np.mean([v["shiny"] for h, v in run.statistics["hypotheses"].items() if h.split("/")[0] == modal])

@@ -42,7 +42,7 @@ KINDS = ("rubber", "metal")
 MATERIAL_FEATURES = ("weights", "weights+saturation")
 
 
-def _weights(rows, features: str = "weights") -> np.ndarray:
+def _material_features(rows, features: str = "weights") -> np.ndarray:
     """(n, 4) features of Phong weights: k_a, k_d, k_s, log alpha; with ``weights+saturation`` (n, 5),
     the reflectance's saturation after them (rows then need ``saturation``)."""
     if features not in MATERIAL_FEATURES:
@@ -93,7 +93,7 @@ class AttributeRules:
         present = sorted(set(kinds) & set(KINDS))
         model, only = None, (present[0] if len(present) == 1 else None)
         if len(present) == 2:
-            model = material_classifier(_weights(materials[k] for k in keys), kinds)
+            model = material_classifier(_material_features(materials[k] for k in keys), kinds)
         names = [key.rsplit("-", 1)[0] for key in keys]
         centres = [chromaticity(reflectance(materials[key])) for key in keys]
         for name, rgb in (extra_colours or {}).items():   # colours the fit never saw: their label RGB (0-255)
@@ -113,7 +113,7 @@ class AttributeRules:
         if len(set(kinds) & set(KINDS)) < 2:
             return self
         return replace(self, material_features=features,
-                       material_model=material_classifier(_weights((_medians(s) for s in samples), features), kinds))
+                       material_model=material_classifier(_material_features((_medians(s) for s in samples), features), kinds))
 
     def decide(self, samples: dict) -> dict:
         """Attribute names (and the shape's posterior probabilities) from posterior samples:
@@ -122,7 +122,7 @@ class AttributeRules:
         shape_probabilities = counts / counts.sum()
         medians = _medians(samples)
         if self.material_model is not None:
-            metal = float(self.material_model.predict_proba(_weights([medians], self.material_features))[0, 1])
+            metal = float(self.material_model.predict_proba(_material_features([medians], self.material_features))[0, 1])
             kind = KINDS[int(metal > 0.5)]
         else:
             kind, metal = self.only_kind, float(self.only_kind == "metal")

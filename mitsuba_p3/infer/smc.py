@@ -403,6 +403,15 @@ def _joined(parts: list[Rows]) -> Rows:
                 [a for p in parts for a in p.acceptance])
 
 
+def shape_weights(statistics: dict) -> dict:
+    """p(shape | I) from a run's statistics: each shape's hypotheses' weights summed (with material
+    kinds as hypotheses, ``sphere/shiny`` and ``sphere/matte`` are both the sphere's)."""
+    weights = {shape: 0.0 for shape in SHAPES}
+    for name, hypothesis in statistics["hypotheses"].items():
+        weights[name.split("/")[0]] += hypothesis["weight"]
+    return weights
+
+
 def sample_smc(core, observation, config: SMCConfig | None = None,
                progress: Callable[[str, int, int], None] | None = None) -> SamplerRun:
     """Tempered SMC of every hypothesis of one image (see the module docstring)."""
