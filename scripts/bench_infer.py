@@ -47,7 +47,7 @@ import numpy as np
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.evaluate import (PRESET, CachedPosterior, EvaluationConfig, check_run, compute_posteriors,
                                  posterior_path)
-from mitsuba_p3.evaluate.jobs import rules_with_train_posteriors
+from mitsuba_p3.evaluate.jobs import PosteriorMisfits, rules_with_train_posteriors
 from mitsuba_p3.evaluate.metrics import attribute_recovery
 from mitsuba_p3.fit.attributes import rules_for
 from mitsuba_p3.fit.model import FittedModel
@@ -124,6 +124,7 @@ def main() -> None:
     if args.images:
         tests = [tests[i] for i in np.unique(np.linspace(0, len(tests) - 1, args.images).astype(int))]
     rules = rules_for(FittedModel(args.model), dataset)
+    misfits = PosteriorMisfits(dataset, Path(args.model))
     report = {"dataset": args.dataset, "images": len(tests), "seeds": args.seeds, "settings": {}}
     for name, seeds in chosen.items():
         runs = []
@@ -142,10 +143,10 @@ def main() -> None:
                 run_seconds = (time.perf_counter() - start) / len(tests) if fresh else None
             runs.append({s.index: CachedPosterior.load(posterior_path(run_dir, "p3", s.index), 500) for s in tests})
         _, recovered = attribute_recovery(dataset, runs[0], rules)
-        learnt = rules_with_train_posteriors(rules, dataset, args.out / f"{name}-seed0", "p3")
+        learnt = rules_with_train_posteriors(rules, dataset, args.out / f"{name}-seed0", "p3", misfits)
         if learnt is not rules:
             recovered["material_accuracy_train_posterior_rule"] = attribute_recovery(
-                dataset, runs[0], learnt)[1]["material_accuracy"]
+                dataset, runs[0], learnt, misfits)[1]["material_accuracy"]
         seconds = [p.seconds for run in runs for p in run.values()]
         entry = {"sampler": asdict(sampler), "seconds_per_image": float(np.median(seconds)),
                  "run_seconds_per_image": run_seconds,

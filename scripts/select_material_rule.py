@@ -12,7 +12,10 @@ evaluation run (``mitsuba-p3 evaluate`` caches them for the concept spread):
   give, so the classifier sees at training the kind of input it is applied to; the rule
   ``mitsuba-p3 evaluate`` uses, since its runs hold train posteriors for the concept spread;
 - ``posteriors+saturation``: the same with the saturation of the posterior's median
-  reflectance as a fifth feature.
+  reflectance as a fifth feature;
+- ``posteriors+saturation+misfit``: and the log of the posterior's Phong misfit as a sixth
+  (:mod:`mitsuba_p3.infer.misfit`: how much of the object the best Phong render at the
+  posterior's pose leaves unexplained, in units of the fitted noise).
 
 Each train class is held out in turn: the ``posteriors`` rule is learnt on the other
 classes' posteriors and scored on the held-out class's (the ``fit`` rule is fixed).
@@ -29,9 +32,12 @@ import json
 import numpy as np
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
-from mitsuba_p3.evaluate.jobs import cached_train_programs, rules_learnt_from
+from mitsuba_p3.evaluate.jobs import PosteriorMisfits, cached_train_posteriors, rules_learnt_from
 from mitsuba_p3.fit.attributes import rules_for
 from mitsuba_p3.fit.model import FittedModel
+
+FEATURES = {"posteriors": "weights", "posteriors+saturation": "weights+saturation",
+            "posteriors+saturation+misfit": "weights+saturation+misfit"}
 
 
 def main() -> None:
@@ -44,21 +50,25 @@ def main() -> None:
 
     dataset = load_dataset(args.dataset)
     fit_rules = rules_for(FittedModel(args.model), dataset)
+    misfits = PosteriorMisfits(dataset, args.model)
+    if not misfits.available:
+        raise SystemExit(f"{args.model} has no fitted noise model, the misfit's unit: run its noise stage first")
     labels = dataset.class_labels
-    programs = {name: p for name, p in cached_train_programs(dataset, args.run, args.likelihood).items() if p}
-    if not programs:
+    posteriors = {name: p for name, p in cached_train_posteriors(dataset, args.run, args.likelihood).items() if p}
+    if not posteriors:
         raise SystemExit(f"{args.run} holds no cached train posteriors for {args.likelihood}")
-    right = {"fit": [], "posteriors": [], "posteriors+saturation": []}
-    for held in programs:
-        others = {n: ps for n, ps in programs.items() if n != held}
-        learnt = rules_learnt_from(fit_rules, others, labels)
-        saturated = rules_learnt_from(fit_rules, others, labels, "weights+saturation")
-        for program in programs[held]:
-            truth = labels[held].material
-            right["fit"].append(fit_rules.decide(program.samples)["material"] == truth)
-            right["posteriors"].append(learnt.decide(program.samples)["material"] == truth)
-            right["posteriors+saturation"].append(saturated.decide(program.samples)["material"] == truth)
-    print(json.dumps({"run": args.run, "likelihood": args.likelihood, "classes": len(programs),
+    right = {"fit": [], **{name: [] for name in FEATURES}}
+    for held in posteriors:
+        others = {n: ps for n, ps in posteriors.items() if n != held}
+        learnt = {name: rules_learnt_from(fit_rules, others, labels, features, misfits)
+                  for name, features in FEATURES.items()}
+        truth = labels[held].material
+        for index, post in posteriors[held].items():
+            right["fit"].append(fit_rules.decide(post.program.samples)["material"] == truth)
+            for name, rules in learnt.items():
+                misfit = misfits(index, post) if rules.material_features.endswith("+misfit") else None
+                right[name].append(rules.decide(post.program.samples, misfit)["material"] == truth)
+    print(json.dumps({"run": args.run, "likelihood": args.likelihood, "classes": len(posteriors),
                       "posteriors": len(right["fit"]),
                       "material_accuracy": {k: round(float(np.mean(v)), 3) for k, v in right.items()}}, indent=2))
 

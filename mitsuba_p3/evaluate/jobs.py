@@ -149,6 +149,12 @@ class CachedPosterior:
     log_evidence: np.ndarray | None = None       # per hypothesis the SMC weighed (shape classes by default)
     shift_samples: np.ndarray | None = None      # (n, 2) posterior draws of the position (newer caches)
 
+    @property
+    def pose(self) -> dict:
+        """The point estimate's pose: position, yaw, median half-extents and modal class."""
+        return {"shift": np.asarray(self.shift, np.float64), "theta": float(self.yaw),
+                "scale": np.median(self.program.samples["scale"], axis=0), "kappa": int(self.kappa)}
+
     @classmethod
     def load(cls, path: Path, max_points: int) -> "CachedPosterior":
         with np.load(path) as f:
@@ -160,41 +166,88 @@ class CachedPosterior:
                        f["sample_shift"].astype(np.float64) if "sample_shift" in f.files else None)
 
 
+def cached_train_posteriors(dataset: Dataset, run_dir: Path, likelihood: str,
+                            max_points: int = 500) -> dict[str, dict[int, CachedPosterior]]:
+    """Every cached train posterior of a run, by class and image index (for choices made on train classes)."""
+    posteriors = {}
+    for name in dataset.classes("train"):
+        paths = {shot.index: posterior_path(run_dir, likelihood, shot.index) for shot in dataset.shots_of(name)}
+        posteriors[name] = {index: CachedPosterior.load(path, max_points) for index, path in paths.items()
+                            if path.exists()}
+    return posteriors
+
+
 def cached_train_programs(dataset: Dataset, run_dir: Path, likelihood: str,
                           max_points: int = 500) -> dict[str, list[ProtoProgram]]:
     """The programs of every cached train posterior of a run, by class (for choices made on train classes)."""
-    programs = {}
-    for name in dataset.classes("train"):
-        paths = [posterior_path(run_dir, likelihood, shot.index) for shot in dataset.shots_of(name)]
-        programs[name] = [CachedPosterior.load(path, max_points).program for path in paths if path.exists()]
-    return programs
+    return {name: [p.program for p in posteriors.values()]
+            for name, posteriors in cached_train_posteriors(dataset, run_dir, likelihood, max_points).items()}
 
 
-# The material rule's features, chosen on train classes: each class held out in turn, the Phong weights
-# with the reflectance's saturation scored 91.1 / 94.4 / 90.0% of the 90 train posteriors of fsclvr /
-# room / dark at 120x160, against 85.6 / 90.0 / 81.1% for the weights alone
-# (``scripts/select_material_rule.py``). On the test splits it did not do better than the weights
-# alone (75.8 / 86.7 / 75.8% against 78.3 / 85.8 / 76.7%): the train images are in-sample for the
-# fit, so held-out train classes flatter every rule learnt from them (docs/results.md).
-MATERIAL_RULE_FEATURES = "weights+saturation"
+class PosteriorMisfits:
+    """The Phong misfit (:func:`mitsuba_p3.infer.misfit.phong_misfit`) of cached posteriors of one data
+    set at their pose estimates, in units of the model's fitted noise; one renderer, values kept by
+    image index and pose. ``available`` is False for a model fitted without the noise stage (no unit to
+    measure in), and the material rule then does without the misfit."""
+
+    def __init__(self, dataset: Dataset, model_dir: Path):
+        from ..fit.model import FittedModel
+
+        self.dataset = dataset
+        self.fitted = FittedModel(model_dir)
+        self.available = (self.fitted.root / "noise.json").exists()
+        self._renderer = None
+        self._values: dict[tuple, float] = {}
+
+    def __call__(self, index: int, posterior: CachedPosterior) -> float:
+        from ..infer.misfit import phong_misfit
+        from ..render import make_renderer
+
+        pose = posterior.pose
+        key = (index, *pose["shift"], pose["theta"], *pose["scale"], pose["kappa"])
+        if key not in self._values:
+            noise = self.fitted.noise
+            if self._renderer is None:
+                height, width = self.dataset.resolution
+                self._renderer = make_renderer(self.fitted.scene(), "mitsuba", height=height, width=width,
+                                               shadows=noise.shadows)
+            self._values[key] = phong_misfit(self._renderer, self.dataset.image(self.dataset.shots[index]), pose,
+                                             noise.gaussian_sigma or noise.sigma)
+        return self._values[key]
 
 
-def rules_with_train_posteriors(rules, dataset: Dataset, run_dir: Path, likelihood: str):
+# The material rule's features, chosen on train classes, each class held out in turn
+# (``scripts/select_material_rule.py``, 90 train posteriors of fsclvr / room / dark at 120x160): the
+# Phong weights, the reflectance's saturation and the Phong misfit scored 92.2 / 94.4 / 95.6%,
+# against 91.1 / 94.4 / 90.0% without the misfit and 85.6 / 90.0 / 81.1% for the weights alone.
+# The saturation alone did not carry over to the test splits (75.8 / 86.7 / 75.8%, docs/results.md);
+# the misfit measures what Phong cannot render, not a colour, and reads the same on every set.
+MATERIAL_RULE_FEATURES = "weights+saturation+misfit"
+
+
+def rules_with_train_posteriors(rules, dataset: Dataset, run_dir: Path, likelihood: str,
+                                misfits: PosteriorMisfits | None = None):
     """The attribute rules with the material kind learnt from the run's cached *train* posteriors
     (:meth:`~mitsuba_p3.fit.attributes.AttributeRules.with_material_from_posteriors`, on
-    :data:`MATERIAL_RULE_FEATURES`), when it holds posteriors of both kinds; else ``rules`` unchanged.
-    Chosen on train classes: learnt from posteriors, the rule beats the one learnt from the fit's
-    materials on fsclvr and dark (``scripts/select_material_rule.py``; docs/results.md)."""
-    return rules_learnt_from(rules, cached_train_programs(dataset, run_dir, likelihood), dataset.class_labels,
-                             MATERIAL_RULE_FEATURES)
+    :data:`MATERIAL_RULE_FEATURES`, or without the misfit when ``misfits`` is None or unavailable),
+    when it holds posteriors of both kinds; else ``rules`` unchanged. Chosen on train classes:
+    learnt from posteriors, the rule beats the one learnt from the fit's materials
+    (``scripts/select_material_rule.py``; docs/results.md)."""
+    return rules_learnt_from(rules, cached_train_posteriors(dataset, run_dir, likelihood), dataset.class_labels,
+                             MATERIAL_RULE_FEATURES, misfits)
 
 
-def rules_learnt_from(rules, programs: dict[str, list[ProtoProgram]], labels: dict, features: str = "weights"):
-    """``rules`` with the material kind learnt from these train programs (by class name; ``labels``
-    give each class's kind) on ``features``; unchanged without programs of both kinds."""
-    samples = [p.samples for ps in programs.values() for p in ps]
-    kinds = [labels[name].material for name, ps in programs.items() for _ in ps]
-    return rules.with_material_from_posteriors(samples, kinds, features)
+def rules_learnt_from(rules, posteriors: dict[str, dict[int, CachedPosterior]], labels: dict,
+                      features: str = "weights", misfits: PosteriorMisfits | None = None):
+    """``rules`` with the material kind learnt from these train posteriors (by class name and image
+    index; ``labels`` give each class's kind) on ``features``; unchanged without posteriors of both
+    kinds. Features that need the Phong misfit drop it when ``misfits`` is None or unavailable."""
+    if features.endswith("+misfit") and (misfits is None or not misfits.available):
+        features = features[:-len("+misfit")]
+    pairs = [(name, index, post) for name, group in posteriors.items() for index, post in group.items()]
+    values = [misfits(index, post) for _, index, post in pairs] if features.endswith("+misfit") else None
+    return rules.with_material_from_posteriors([post.program.samples for _, _, post in pairs],
+                                               [labels[name].material for name, _, _ in pairs], features, values)
 
 
 def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: EvaluationConfig) -> None:

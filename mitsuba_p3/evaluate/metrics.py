@@ -115,17 +115,21 @@ def pose_summary(errors: list[dict]) -> tuple[dict, dict]:
     return per_class, summarise([e["adi"] for e in errors])
 
 
-def attribute_recovery(dataset: Dataset, cached: dict, rules) -> tuple[list[dict], dict]:
-    """Per test image, the attributes its posterior decides (:mod:`mitsuba_p3.attributes`) against its
+def attribute_recovery(dataset: Dataset, cached: dict, rules, misfits=None) -> tuple[list[dict], dict]:
+    """Per test image, the attributes its posterior decides (:mod:`mitsuba_p3.fit.attributes`) against its
     labels, and the summary: accuracy per attribute (shape overall and for large objects), the mean
     log probability of the true shape (class frequencies with a 0.01 pseudo-count) and the ECE of
-    the shape posterior's confidence. Shapes outside the primitives (ood) are not scored."""
+    the shape posterior's confidence. Shapes outside the primitives (ood) are not scored. ``misfits``
+    (a :class:`~mitsuba_p3.evaluate.jobs.PosteriorMisfits`) gives each posterior's Phong misfit when
+    the material rule reads it (a ``misfit`` column then joins the rows)."""
     from ..shapes import SHAPES
 
     rows = []
+    read = misfits is not None and rules.material_features.endswith("+misfit")
     for index, post in cached.items():
         label = dataset.shots[index].cls
-        decided = rules.decide(post.program.samples)
+        misfit = misfits(index, post) if read else None
+        decided = rules.decide(post.program.samples, misfit)
         row = {"query": index, "class": label.name}
         for attribute in ("shape", "material", "size", "colour"):
             row[f"{attribute}_true"], row[f"{attribute}_decided"] = getattr(label, attribute), decided[attribute]
@@ -134,6 +138,8 @@ def attribute_recovery(dataset: Dataset, cached: dict, rules) -> tuple[list[dict
             row["shape_log_score"] = float(np.log(counts[SHAPES.index(label.shape)] / counts.sum()))
             row["shape_confidence"] = float(max(decided["shape_probabilities"]))
         row["p_metal"] = decided["p_metal"]
+        if read:
+            row["misfit"] = misfit
         rows.append(row)
     summary = {}
     for attribute in ("shape", "material", "size", "colour"):

@@ -14,8 +14,8 @@ from ..files import atomic_json, atomic_open, folder_lock
 from ..fit.attributes import rules_for
 from ..fit.model import FittedModel
 from .config import EvaluationConfig
-from .jobs import (CachedPosterior, check_run, check_scheduler, compute_posteriors, posterior_path,
-                   rules_with_train_posteriors)
+from .jobs import (CachedPosterior, PosteriorMisfits, check_run, check_scheduler, compute_posteriors,
+                   posterior_path, rules_with_train_posteriors)
 from .metrics import (accuracy_of, attribute_recovery, classify_episodes, pose_errors, pose_summary, setting_name,
                       test_settings)
 from .tables import tables_dir, write_tables
@@ -71,6 +71,20 @@ def run_spread(dataset: Dataset, run_dir: Path, likelihood: str, config: Evaluat
     return spread
 
 
+def _material_rule_source(dataset: Dataset, run_dir: Path, model_dir: Path, misfits: PosteriorMisfits,
+                          spread_from: Path | None) -> tuple | None:
+    """Where the material rule is learnt: (data set, run, misfits) of the train posteriors. A data set
+    without train classes (ood) learns it where it borrows the concept spread, from the train
+    posteriors of ``spread_from`` and that run's own data set; None (the fit's rule) without either."""
+    if dataset.classes("train"):
+        return dataset, run_dir, misfits
+    record = Path(spread_from or "") / "run.json"
+    if spread_from is None or not record.is_file():
+        return None
+    source = load_dataset(json.loads(record.read_text())["dataset"])
+    return source, Path(spread_from), PosteriorMisfits(source, model_dir)
+
+
 def sample_spread(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path, config: EvaluationConfig,
                   progress: Callable[[str, int, int], None] | None = None) -> None:
     """Only the concept-spread part of an evaluation run: its train posteriors (cached, resumable, shared
@@ -117,6 +131,8 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
         compute_posteriors(dataset, Path(model_dir), run_dir, config,
                            (lambda done, total: progress("posteriors", done, total)) if progress else None, shots)
         results, predictions, attributes = {}, [], []
+        misfits = PosteriorMisfits(dataset, Path(model_dir))       # the material rule's Phong misfits
+        learn_from = _material_rule_source(dataset, run_dir, Path(model_dir), misfits, spread_from)
         for likelihood in config.likelihoods:
             spread = run_spread(dataset, run_dir, likelihood, config, spread_from)
             cached = {}
@@ -134,8 +150,9 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
                 predictions += rows
                 accuracy[setting_name(n_way, k_shot)] = accuracy_of(rows, config.episodes)
             per_class, overall = pose_summary(pose_errors(dataset, cached))
-            rules_here = rules_with_train_posteriors(rules, dataset, run_dir, likelihood)
-            rows, recovered = attribute_recovery(dataset, cached, rules_here)
+            rules_here = (rules_with_train_posteriors(rules, learn_from[0], learn_from[1], likelihood, learn_from[2])
+                          if learn_from else rules)
+            rows, recovered = attribute_recovery(dataset, cached, rules_here, misfits)
             attributes += [{"model": likelihood, **row} for row in rows]
             results[likelihood] = {
                 "accuracy": accuracy, "adi_per_class": per_class, "adi": overall, "attributes": recovered,

@@ -9,7 +9,9 @@ metal sphere?". :class:`AttributeRules` turns posterior samples into those words
   optimised on the *train* classes, whose kinds the labels give; applied to the
   posterior medians. An evaluation, which holds train posteriors, learns it from
   those instead (:meth:`AttributeRules.with_material_from_posteriors`), with the
-  saturation of the median reflectance as a fifth feature;
+  saturation of the median reflectance as a fifth feature and the log of the posterior's
+  *Phong misfit* (:mod:`mitsuba_p3.infer.misfit`: how much of the object the best Phong
+  render at its pose leaves unexplained) as a sixth;
 - **size** (small or large): the protocol size nearest, in log space, to the
   median of the posterior's half-extents;
 - **colour**: the colour name of the fitted train material whose *chromaticity*
@@ -37,19 +39,26 @@ from ..shapes import SHAPES
 KINDS = ("rubber", "metal")
 
 
-# The material rule's inputs: the Phong weights, or the weights and the saturation of the reflectance
-# (a white highlight that Phong's lobe does not fully explain pales a metal's fitted colour).
-MATERIAL_FEATURES = ("weights", "weights+saturation")
+# The material rule's inputs: the Phong weights; the weights and the saturation of the reflectance
+# (a white highlight that Phong's lobe does not fully explain pales a metal's fitted colour); and
+# those with the log Phong misfit (a metal's mirrored surroundings are what Phong cannot render).
+MATERIAL_FEATURES = ("weights", "weights+saturation", "weights+saturation+misfit")
 
 
 def _material_features(rows, features: str = "weights") -> np.ndarray:
     """(n, 4) features of Phong weights: k_a, k_d, k_s, log alpha; with ``weights+saturation`` (n, 5),
-    the reflectance's saturation after them (rows then need ``saturation``)."""
+    the reflectance's saturation after them (rows then need ``saturation``); with
+    ``weights+saturation+misfit`` (n, 6), the log Phong misfit last (rows then need ``misfit``)."""
     if features not in MATERIAL_FEATURES:
         raise ValueError(f"unknown material features {features!r}; choose {' or '.join(MATERIAL_FEATURES)}")
     rows = list(rows)
+    if features.endswith("+misfit") and any(r.get("misfit") is None for r in rows):
+        raise ValueError(f"material features {features!r} need each posterior's Phong misfit "
+                         "(mitsuba_p3.infer.misfit); none was given")
     return np.array([[r["ambient"], r["diffuse"], r["specular"], np.log(max(r["shininess"], 1e-3))]
-                     + ([r["saturation"]] if features == "weights+saturation" else []) for r in rows], np.float64)
+                     + ([r["saturation"]] if "saturation" in features else [])
+                     + ([np.log(max(r["misfit"], 1e-3))] if features.endswith("+misfit") else [])
+                     for r in rows], np.float64)
 
 
 def saturation(rgb: np.ndarray) -> np.ndarray:
@@ -102,25 +111,30 @@ class AttributeRules:
                 centres.append(chromaticity(np.asarray(rgb, np.float64)))
         return cls(model, only, names, np.array(centres, np.float64))
 
-    def with_material_from_posteriors(self, samples: list[dict], kinds: list[str], features: str = "weights"
-                                      ) -> "AttributeRules":
+    def with_material_from_posteriors(self, samples: list[dict], kinds: list[str], features: str = "weights",
+                                      misfits: list[float] | None = None) -> "AttributeRules":
         """The same rules with the material kind learnt from posteriors of *train* images (their
-        samples and labelled kinds) instead of the fit's materials: the classifier then sees at
-        training the same kind of input, posterior medians, that it is applied to. Unchanged when
-        the train images hold one kind only."""
+        samples and labelled kinds, and with ``...+misfit`` features their Phong misfits) instead
+        of the fit's materials: the classifier then sees at training the same kind of input,
+        posterior medians, that it is applied to. Unchanged when the train images hold one kind only."""
         from dataclasses import replace
 
         if len(set(kinds) & set(KINDS)) < 2:
             return self
+        misfits = [None] * len(samples) if misfits is None else list(misfits)
+        if len(misfits) != len(samples):
+            raise ValueError(f"{len(misfits)} misfits for {len(samples)} posteriors")
+        rows = [{**_medians(s), "misfit": m} for s, m in zip(samples, misfits)]
         return replace(self, material_features=features,
-                       material_model=material_classifier(_material_features((_medians(s) for s in samples), features), kinds))
+                       material_model=material_classifier(_material_features(rows, features), kinds))
 
-    def decide(self, samples: dict) -> dict:
+    def decide(self, samples: dict, misfit: float | None = None) -> dict:
         """Attribute names (and the shape's posterior probabilities) from posterior samples:
-        ``class`` (n,), ``scale`` (n, 3), ``colour`` (n, 3), ``ambient``/``diffuse``/``specular``/``shininess`` (n, 1)."""
+        ``class`` (n,), ``scale`` (n, 3), ``colour`` (n, 3), ``ambient``/``diffuse``/``specular``/``shininess``
+        (n, 1); ``misfit``, the posterior's Phong misfit, when the material rule reads it."""
         counts = np.bincount(np.asarray(samples["class"], int).ravel(), minlength=len(SHAPES)).astype(float)
         shape_probabilities = counts / counts.sum()
-        medians = _medians(samples)
+        medians = {**_medians(samples), "misfit": misfit}
         if self.material_model is not None:
             metal = float(self.material_model.predict_proba(_material_features([medians], self.material_features))[0, 1])
             kind = KINDS[int(metal > 0.5)]
