@@ -221,6 +221,35 @@ def test_material_gibbs_moves_explain_the_image(fitted, observed):
     assert np.argmax(colour) == 0  # red, like the truth
 
 
+def test_ridge_move_keeps_the_image_and_the_prior(fitted, observed):
+    """The ridge move (c s, k_a / s, k_d / s) moves often, leaves the prior invariant (prior draws moved
+    30 times still follow the prior: the colour's brightness and k_d, two-sample KS tests), changes
+    the log density by the prior's difference only, and leaves the render unchanged."""
+    import jax
+    from blackjax.mcmc.random_walk import RWState
+    from scipy.stats import ks_2samp
+
+    model = PosteriorModel(fitted, observed, LikelihoodConfig("p3", sigma=0.05))
+    core = model.core
+    draws = np.asarray(model.prior.sample(np.random.default_rng(0), 2000), np.float32)
+    states = RWState(draws, jax.vmap(model.prior.log_prob)(draws))
+    step = jax.jit(jax.vmap(core.ridge_move))
+    for i in range(30):
+        states = step(jax.random.split(jax.random.PRNGKey(100 + i), len(draws)), states)
+    moved = np.any(np.asarray(states.position) != draws, axis=1)
+    assert moved.mean() > 0.3
+    start, end = model.prior.constrain(draws), model.prior.constrain(states.position)
+    brightness = lambda x: np.asarray(x["colour"]).sum(-1)  # noqa: E731
+    for values in (brightness, lambda x: np.asarray(x["diffuse"])):
+        assert ks_2samp(values(start), values(end)).pvalue > 0.01
+    np.testing.assert_allclose(states.logdensity, jax.vmap(model.prior.log_prob)(states.position), rtol=1e-4, atol=1e-2)
+    # the image is unchanged: the same scenes rendered before and after (colour inside [0, 1])
+    some = np.nonzero(moved & (np.max(np.asarray(start["colour"]), axis=1) <= 1))[0][:4]
+    assert len(some) == 4
+    np.testing.assert_allclose(jax.vmap(model.render)(states.position[some]), jax.vmap(model.render)(draws[some]),
+                               atol=2e-5)
+
+
 def test_sampler_weighs_modes_correctly(fitted):
     """On a known target (three Gaussians, one per shape class, with weights 0.5, 0.3, 0.2) the
     mode jumps and walks give each class its probability: a wrong Hastings term would not.

@@ -24,6 +24,9 @@ from ..space import DIMENSION, HYPOTHESES, OBJECT_KEYS, SLICES, render_params
 from .likelihood import LikelihoodConfig, observe, score
 from .mcmc import Target
 
+# The ridge move's step: log s ~ N(0, RIDGE_STEP^2), a fifth of an e-fold of the colour's brightness.
+RIDGE_STEP = 0.2
+
 
 def contract_params(prior: Prior, z) -> dict:
     """z (..., 15) -> the renderer contract's object parameters (JAX): argmax class, clipped materials."""
@@ -264,6 +267,41 @@ class PosteriorCore:
         # the log joint changes only through the prior's yaw term (likelihood and scale prior are invariant)
         new_logdensity = state.logdensity + self.prior.log_prob(new) - self.prior.log_prob(z)
         return type(state)(jnp.where(accept, new, z), jnp.where(accept, new_logdensity, state.logdensity))
+
+    def ridge_move(self, key, state, log_prior=None, step: float = RIDGE_STEP):
+        """An MH move along the colour/weight ridge; no render.
+
+        The image sees the colour c only through the products c k_a and c k_d (the
+        specular lobe is white), so the scene (c s, k_a / s, k_d / s) renders exactly
+        like (c, k_a, k_d) for any s > 0, as long as no channel of c is clipped at 1.
+        Along that ridge the posterior is the prior's, and the material update, which
+        draws the colour given the weights and then the weights given the colour, crawls
+        along it in tiny steps once the likelihood is sharp (each conditional is narrow):
+        runs with different seeds then sit at different points of the same ridge. This
+        move proposes log s ~ N(0, ``step``^2) and accepts with the prior ratio times the
+        Jacobian s (c scales 3 coordinates by s, k_a and k_d two by 1/s; the affine maps to
+        z cancel); a proposal or state with a channel of c above 1 is rejected (there the
+        render would change), which keeps detailed balance. ``state.logdensity`` changes by
+        the prior's difference only; ``log_prior`` defaults to :meth:`Prior.log_prob`."""
+        import jax
+        import jax.numpy as jnp
+
+        log_prior = log_prior or self.prior.log_prob
+        k_step, k_accept = jax.random.split(key)
+        z = state.position
+        x = self.prior.constrain(z)
+        log_s = step * jax.random.normal(k_step)
+        s = jnp.exp(log_s)
+        new = z
+        for name, factor in (("colour", s), ("ambient", 1.0 / s), ("diffuse", 1.0 / s)):
+            g = self.prior.gmms[name]
+            value = x[name] if name == "colour" else x[name][..., None]
+            new = new.at[SLICES[name]].set((value * factor - g.mean) / g.std)
+        new_colour = x["colour"] * s
+        inside = (jnp.max(x["colour"]) <= 1.0) & (jnp.max(new_colour) <= 1.0)
+        delta = log_prior(new) - log_prior(z)
+        accept = inside & (jnp.log(jax.random.uniform(k_accept)) < delta + log_s)
+        return type(state)(jnp.where(accept, new, z), jnp.where(accept, state.logdensity + delta, state.logdensity))
 
     def material_move(self, key, state, observation, tempering=1.0, log_prior=None):
         """Metropolis-within-Gibbs update of the materials of one chain's state: colour, then (k_a, k_d, k_s).
