@@ -66,8 +66,8 @@ def main() -> None:
         for index, post in posteriors[held].items():
             right["fit"].append(fit_rules.decide(post.program.samples)["material"] == truth)
             for name, rules in learnt.items():
-                misfit = misfits(index, post) if rules.material_features.endswith("+misfit") else None
-                right[name].append(rules.decide(post.program.samples, misfit)["material"] == truth)
+                right[name].append(rules.decide(post.program.samples, misfits.for_rules(rules, index, post))["material"]
+                                   == truth)
     print(json.dumps({"run": args.run, "likelihood": args.likelihood, "classes": len(posteriors),
                       "posteriors": len(right["fit"]),
                       "material_accuracy": {k: round(float(np.mean(v)), 3) for k, v in right.items()}}, indent=2))

@@ -215,6 +215,10 @@ class PosteriorMisfits:
                                              noise.gaussian_sigma or noise.sigma)
         return self._values[key]
 
+    def for_rules(self, rules, index: int, posterior: CachedPosterior) -> float | None:
+        """The posterior's misfit when ``rules``' material model reads it, else None (no render)."""
+        return self(index, posterior) if rules.material_features.endswith("+misfit") else None
+
 
 # The material rule's features, chosen on train classes, each class held out in turn
 # (``scripts/select_material_rule.py``, 90 train posteriors of fsclvr / room / dark at 120x160): the

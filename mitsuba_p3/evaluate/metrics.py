@@ -125,10 +125,9 @@ def attribute_recovery(dataset: Dataset, cached: dict, rules, misfits=None) -> t
     from ..shapes import SHAPES
 
     rows = []
-    read = misfits is not None and rules.material_features.endswith("+misfit")
     for index, post in cached.items():
         label = dataset.shots[index].cls
-        misfit = misfits(index, post) if read else None
+        misfit = misfits.for_rules(rules, index, post) if misfits is not None else None
         decided = rules.decide(post.program.samples, misfit)
         row = {"query": index, "class": label.name}
         for attribute in ("shape", "material", "size", "colour"):
@@ -138,7 +137,7 @@ def attribute_recovery(dataset: Dataset, cached: dict, rules, misfits=None) -> t
             row["shape_log_score"] = float(np.log(counts[SHAPES.index(label.shape)] / counts.sum()))
             row["shape_confidence"] = float(max(decided["shape_probabilities"]))
         row["p_metal"] = decided["p_metal"]
-        if read:
+        if misfit is not None:
             row["misfit"] = misfit
         rows.append(row)
     summary = {}
