@@ -7,12 +7,13 @@ all estimated from posterior samples; the pose is dropped, since a concept does
 not depend on where the object stands. A class's program is the merge of its K
 shots' programs (a KDE of the concatenated samples).
 
-The distance of an image's program C_I from a class program C_k is
+The paper's distance of an image's program C_I from a class program C_k is
 
     d(C_k, C_I) = sum over properties v of KL(C_k,v || C_I,v),
 
-and p(c = k | I) = softmax_k(-d(C_k, C_I)). Each continuous KL is estimated by
-Monte Carlo from ``samples`` draws of C_k,v (seeded):
+and p(c = k | I) = softmax_k(-d(C_k, C_I)); this project's default turns each KL
+round (KL(C_I,v || C_k,v), below). Each continuous KL is estimated by Monte
+Carlo from ``samples`` draws of its first argument (seeded):
 
     KL(P || Q) ~ (1/n) sum_i [log p(x_i) - log q(x_i)],   x_i ~ P,
 
@@ -34,6 +35,19 @@ distribution is mixed with a uniform one at the sampler's error rate on train
 shapes, so a program is the predictive density of another instance of its
 concept. Without a spread the programs are the paper's.
 
+**The KL's direction.** The paper's KL(C_k || C_I) draws from the class
+program and asks the query's posterior to explain every draw. A K-shot class
+program is a mixture of K posteriors, so its draws near the other shots fall
+outside a sharp query's posterior even when the query is like one of them: the
+more shots, the farther every class. ``direction="image||class"`` turns it
+round: KL(C_I || C_k) = -E_{x~C_I}[log C_k(x)] - H(C_I), and H(C_I) is the same
+for every class, so softmax_k(-KL(C_I || C_k)) weighs each class by the
+expected log predictive density of the query's posterior under the concept,
+which a mixture of shots makes larger, not smaller. In 1-shot episodes, with
+both programs one posterior, the two directions differ little. Chosen on
+held-out train classes' 1- and 5-shot episodes (``scripts/select_spread.py
+--shots 1,5 --directions ...``; docs/results.md); ``class||image`` is the paper's.
+
 Every density of the project speaks one vocabulary: ``log_prob(x)`` and
 ``sample(rng, n)`` (:class:`GaussianKde`, :class:`ProtoProgram`, and the prior's
 :class:`~mitsuba_p3.fit.priors.GMM` and :class:`~mitsuba_p3.fit.priors.Prior`).
@@ -51,6 +65,7 @@ from .shapes import SHAPES
 
 CONTINUOUS = ("scale", "colour", "ambient", "diffuse", "specular", "shininess")
 PROPERTIES = CONTINUOUS + ("class",)
+DIRECTIONS = ("class||image", "image||class")
 
 
 @dataclass(frozen=True)
@@ -62,6 +77,9 @@ class DistanceConfig:
     properties: tuple = PROPERTIES  # the terms of the distance (all of them in the paper; fewer for ablations)
     # train images per train class whose posteriors fit the programs' ConceptSpread (0: the paper's programs)
     spread_shots: int = 3
+    # the KL's direction: "image||class" (KL(C_I || C_k); chosen on held-out train classes' 1- and 5-shot
+    # episodes, docs/results.md) or "class||image" (the paper's, KL(C_k || C_I))
+    direction: str = "image||class"
 
     def __post_init__(self):
         unknown = set(self.properties) - set(PROPERTIES)
@@ -69,6 +87,8 @@ class DistanceConfig:
             raise MitsubaP3Error(f"distance properties must be a non-empty subset of {PROPERTIES}; "
                                  f"got {tuple(self.properties)}")
         check_counts(self, {"spread_shots": 0})
+        if self.direction not in DIRECTIONS:
+            raise MitsubaP3Error(f"unknown distance direction {self.direction!r}; choose {' or '.join(DIRECTIONS)}")
         if self.spread_shots == 1:
             raise MitsubaP3Error("spread_shots must be 0 (no concept spread) or 2 or more train images per class "
                                  "(a within-class spread needs two); got 1")
@@ -244,49 +264,53 @@ class ProtoProgram:
         return out
 
 
-def _class_side(class_program: ProtoProgram, config: DistanceConfig) -> dict:
-    """The seeded draws x ~ C_k and log C_k(x) per property: shared by every image compared with C_k."""
+def _draws(source: ProtoProgram, config: DistanceConfig) -> dict:
+    """The seeded draws x ~ P and log P(x) per property of the KL's first argument, and its class
+    distribution: shared by every program P is compared with."""
     rng = np.random.default_rng(config.seed)
     side = {}
     for name in config.continuous:
-        p = class_program.kde(name)
+        p = source.kde(name)
         x = p.sample(rng, config.samples)
         side[name] = (x, p.log_prob(x))
-    side["class"] = class_program.class_probabilities(config.class_smoothing)
+    side["class"] = source.class_probabilities(config.class_smoothing)
     return side
 
 
-def _kl_matrix(sides: list[dict], image_programs: list[ProtoProgram], config: DistanceConfig) -> dict:
-    """Per property, the (images, classes) matrix of KL(C_k || C_I) estimates.
+def _kl_matrix(class_programs: list[ProtoProgram], image_programs: list[ProtoProgram],
+               config: DistanceConfig) -> dict:
+    """Per property, the (images, classes) matrix of KL estimates in the configured direction.
 
-    Every class's draws of a property are stacked, so each image's KDE is
-    evaluated once per property for all classes together.
+    Every draw of the KL's first arguments is stacked, so each second argument's KDE is evaluated
+    once per property for all of them together.
     """
+    forward = config.direction == "class||image"
+    sources, targets = (class_programs, image_programs) if forward else (image_programs, class_programs)
+    sides = [_draws(source, config) for source in sources]
     n = config.samples
     terms = {}
     for name in config.continuous:
         x = np.concatenate([side[name][0] for side in sides])
         log_p = np.stack([side[name][1] for side in sides]).mean(axis=1)
-        log_q = np.stack([image.kde(name).log_prob(x).reshape(len(sides), n).mean(axis=1)
-                          for image in image_programs])
-        terms[name] = log_p[None, :] - log_q
+        log_q = np.stack([target.kde(name).log_prob(x).reshape(len(sides), n).mean(axis=1) for target in targets])
+        terms[name] = log_p[None, :] - log_q                               # (targets, sources)
     if "class" in config.properties:
-        p = np.stack([side["class"] for side in sides])                      # (classes, shapes)
-        q = np.stack([image.class_probabilities(config.class_smoothing) for image in image_programs])
+        p = np.stack([side["class"] for side in sides])                    # (sources, shapes)
+        q = np.stack([target.class_probabilities(config.class_smoothing) for target in targets])
         terms["class"] = np.sum(p * np.log(p), axis=1)[None, :] - np.log(q) @ p.T
-    return terms
+    return terms if forward else {name: value.T for name, value in terms.items()}
 
 
 def kl_terms(class_program: ProtoProgram, image_program: ProtoProgram,
              config: DistanceConfig = DistanceConfig()) -> dict:
-    """The per-property KL(C_k || C_I) of the module docstring."""
-    matrix = _kl_matrix([_class_side(class_program, config)], [image_program], config)
+    """The per-property KL terms of the module docstring (in ``config.direction``)."""
+    matrix = _kl_matrix([class_program], [image_program], config)
     return {name: float(value[0, 0]) for name, value in matrix.items()}
 
 
 def distance(class_program: ProtoProgram, image_program: ProtoProgram,
              config: DistanceConfig = DistanceConfig()) -> float:
-    """d(C_k, C_I) = sum over properties of KL(C_k || C_I)."""
+    """d(C_k, C_I) = sum over properties of KL(C_k || C_I) (or KL(C_I || C_k), as ``config.direction`` says)."""
     return float(sum(kl_terms(class_program, image_program, config).values()))
 
 
@@ -299,6 +323,5 @@ def classify(class_programs: list[ProtoProgram], image_program: ProtoProgram,
 def classify_many(class_programs: list[ProtoProgram], image_programs: list[ProtoProgram],
                   config: DistanceConfig = DistanceConfig()) -> np.ndarray:
     """(images, classes) probabilities; each class's draws and densities are computed once."""
-    sides = [_class_side(c, config) for c in class_programs]
-    distances = sum(_kl_matrix(sides, image_programs, config).values())
+    distances = sum(_kl_matrix(class_programs, image_programs, config).values())
     return np.exp(log_softmax(-distances, axis=1))

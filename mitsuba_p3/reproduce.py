@@ -172,6 +172,9 @@ def parse_run_name(name: str) -> tuple[str, float | str | None] | None:
 def _describe(part: str) -> str:
     if part == "spread0":
         return "no concept spread"
+    if part.startswith("kl-"):
+        first, second = part.removeprefix("kl-").split("-", 1)
+        return f"KL({first} || {second})"
     return f"spread of {part.removeprefix('spread')} train images" if part.startswith("spread") else part
 
 
@@ -179,7 +182,7 @@ def label(likelihood: str, sigma: float | str | None, distance: str | None = Non
     """A table row's name: ``P3``, ``P3 (fitted noise)``, ``P3 (sigma 0.3)``, ``NP3 (colour+class)``, ..."""
     noise = [] if sigma is None else [f"{sigma} noise"] if sigma in FITTED_NOISES else [f"sigma {sigma:g}"]
     # a tables folder's name: distance terms and/or the concept spread (spread0: the paper's programs)
-    parts = distance.replace("-spread", "\0spread").split("\0") if distance else []
+    parts = distance.replace("-spread", "\0spread").replace("-kl-", "\0kl-").split("\0") if distance else []
     notes = noise + [_describe(part) for part in parts]
     return likelihood.upper() + (f" ({', '.join(notes)})" if notes else "")
 
@@ -193,12 +196,16 @@ def _noise_order(sigma) -> tuple:
 def collect(out: Path) -> dict:
     """Every evaluated run under ``out/runs``: {(benchmark, sigma, distance): {likelihood: result}}, where
     distance is None for the paper's and e.g. ``colour+class`` for tables in ``runs/V/distance-colour+class``
-    (``spread0`` for the paper's distance over programs without a concept spread)."""
+    (``spread0`` for the paper's distance over programs without a concept spread, ``kl-class-image`` for the
+    paper's KL direction)."""
     found = {}
     for run in sorted((out / "runs").glob("*/")):
         key = parse_run_name(run.name)
-        for path in [run / "results.json", *sorted(run.glob("distance-*/results.json")),
-                     *sorted(run.glob("spread*/results.json"))] if key else []:
+        if key is None:
+            continue
+        tables = [run / "results.json"] + [path for folder in ("distance-*", "spread*", "kl-*")
+                                           for path in sorted(run.glob(f"{folder}/results.json"))]
+        for path in tables:
             if path.is_file():
                 distance = None if path.parent == run else path.parent.name.removeprefix("distance-")
                 found[key + (distance,)] = json.loads(path.read_text())["results"]

@@ -17,7 +17,7 @@ from pathlib import Path
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.concepts import DistanceConfig, parse_properties
 from mitsuba_p3.errors import MitsubaP3Error
-from mitsuba_p3.evaluate import markdown_table, one_shot_accuracy
+from mitsuba_p3.evaluate import held_out_accuracy, markdown_table
 from mitsuba_p3.evaluate.jobs import cached_train_programs
 
 WAYS = (5, 10)
@@ -44,7 +44,7 @@ def main() -> None:
     rows = []
     for label, properties in subsets:
         config = DistanceConfig(properties=properties)
-        cells = [f"{100 * one_shot_accuracy(programs, n, args.episodes, args.seed, config):.1f}"
+        cells = [f"{100 * held_out_accuracy(programs, n, args.episodes, args.seed, config):.1f}"
                  for n in WAYS]
         rows.append([label] + cells)
         print(f"{label}: {' / '.join(cells)}", flush=True)

@@ -30,7 +30,7 @@ import numpy as np
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.errors import MitsubaP3Error
 from mitsuba_p3.evaluate import (PRESET, CachedPosterior, EvaluationConfig, check_run, compute_posteriors,
-                                 one_shot_accuracy, posterior_path)
+                                 held_out_accuracy, posterior_path)
 WAYS = (5, 10)
 
 
@@ -75,7 +75,7 @@ def main() -> None:
                "median_max_r_hat": float(np.median([p.max_r_hat for p in every]))}
         for n_way in WAYS:
             programs = {c: [p.program for p in v] for c, v in cached.items()}
-            row[f"{n_way}-way 1-shot"] = one_shot_accuracy(programs, n_way, args.episodes, args.seed,
+            row[f"{n_way}-way 1-shot"] = held_out_accuracy(programs, n_way, args.episodes, args.seed,
                                                            config.distance)
         print(json.dumps(row), flush=True)
         rows.append(row)

@@ -4,13 +4,15 @@ Loads cached posteriors of train images (``mitsuba-p3 evaluate`` writes them to
 ``RUN/posteriors/LIKELIHOOD`` when it fits a spread, or any run over train shots),
 splits the train classes into two halves, fits the
 :class:`~mitsuba_p3.concepts.ConceptSpread` on one half and scores seeded N-way
-1-shot episodes among the other half's classes, then the other way round. Each
+K-shot episodes among the other half's classes, then the other way round. Each
 distance is scored with the paper's programs (no spread) and with the fitted
-spread, so the spread is judged on classes it was not fitted on. No test image
-is used.
+spread, so the spread is judged on classes it was not fitted on; ``--directions``
+adds the KL's other direction. No test image is used. K-shot episodes need K + 1
+posteriors per train class (``evaluate`` samples three; ``scripts/sample_train_shots.py``
+samples six, for 5-shot episodes).
 
     python scripts/select_spread.py data/fsclvr out/eval-fitted [--likelihood p3] [--episodes 200]
-        [--subsets all,colour+class]
+        [--subsets all,colour+class] [--shots 1,5] [--directions class||image,image||class] [--spreads fitted]
 """
 from __future__ import annotations
 
@@ -23,7 +25,7 @@ import numpy as np
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.concepts import DistanceConfig, fit_spread, parse_properties
 from mitsuba_p3.errors import MitsubaP3Error
-from mitsuba_p3.evaluate import markdown_table, one_shot_accuracy
+from mitsuba_p3.evaluate import held_out_accuracy, markdown_table
 from mitsuba_p3.evaluate.jobs import cached_train_programs
 from mitsuba_p3.evaluate.run import train_shapes
 
@@ -38,19 +40,26 @@ def main() -> None:
     parser.add_argument("--subsets", default="all,colour+class")
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--shots", default="1", help="K of the K-shot episodes, e.g. 1,5")
+    parser.add_argument("--directions", default="class||image", help="KL directions, e.g. class||image,image||class")
+    parser.add_argument("--spreads", default="none,fitted", help="none (the paper's programs), fitted, or both")
     args = parser.parse_args()
     try:
         subsets = [(s, parse_properties(s)) for s in args.subsets.split(",")]
     except MitsubaP3Error as error:
         parser.error(str(error))
+    shots = [int(k) for k in args.shots.split(",")]
+    if not set(args.spreads.split(",")) <= {"none", "fitted"}:
+        parser.error(f"--spreads: choose none, fitted or none,fitted; got {args.spreads!r}")
+    directions = args.directions.split(",")
     dataset = load_dataset(args.dataset)
     programs = {name: found for name, found in
                 cached_train_programs(dataset, args.run, args.likelihood, DistanceConfig.max_points).items()
-                if len(found) >= 2}
+                if len(found) >= max(shots) + 1}
     names = sorted(programs)
     half = len(names) // 2
     if half < max(WAYS):
-        parser.error(f"{args.run} has 2+ train posteriors for {len(names)} classes; "
+        parser.error(f"{args.run} has {max(shots) + 1}+ train posteriors for {len(names)} classes; "
                      f"cross-fitting {max(WAYS)}-way episodes needs {2 * max(WAYS)}")
     order = np.random.default_rng(args.seed).permutation(names)
     folds = [list(order[:half]), list(order[half:])]
@@ -60,24 +69,29 @@ def main() -> None:
         print(f"spread fitted on fold {1 - f} ({spread.images} images, {spread.classes} classes): class error "
               f"{spread.class_error:.3f}; sd " + ", ".join(
                   f"{k} {np.sqrt(np.diag(v)).round(4).tolist()}" for k, v in spread.covariance.items()), flush=True)
+    settings = [(n_way, k_shot) for n_way in WAYS for k_shot in shots]
     rows, report = [], {}
     for label, properties in subsets:
-        config = DistanceConfig(properties=properties)
-        for spread_name in ("none", "fitted"):
-            cells = []
-            for n_way in WAYS:
-                scores = []
-                for f, fold in enumerate(folds):
-                    spread = spreads[f] if spread_name == "fitted" else None
-                    scored = {c: [p.with_spread(spread) for p in programs[c]] for c in fold}
-                    scores.append(one_shot_accuracy(scored, n_way, args.episodes, args.seed, config))
-                cells.append(100 * float(np.mean(scores)))
-            report[f"{label}/{spread_name}"] = cells
-            rows.append([label, spread_name] + [f"{c:.1f}" for c in cells])
-            print(f"{label} spread {spread_name}: {' / '.join(rows[-1][2:])}", flush=True)
+        for direction in directions:
+            try:
+                config = DistanceConfig(properties=properties, direction=direction)
+            except MitsubaP3Error as error:
+                parser.error(str(error))
+            for spread_name in args.spreads.split(","):
+                cells = []
+                for n_way, k_shot in settings:
+                    scores = []
+                    for f, fold in enumerate(folds):
+                        spread = spreads[f] if spread_name == "fitted" else None
+                        scored = {c: [p.with_spread(spread) for p in programs[c]] for c in fold}
+                        scores.append(held_out_accuracy(scored, n_way, args.episodes, args.seed, config, k_shot))
+                    cells.append(100 * float(np.mean(scores)))
+                report[f"{label}/{direction}/{spread_name}"] = cells
+                rows.append([label, direction, spread_name] + [f"{c:.1f}" for c in cells])
+                print(f"{label} {direction} spread {spread_name}: {' / '.join(rows[-1][3:])}", flush=True)
     print()
-    print(markdown_table(["distance terms", "spread"] + [f"{n}-way 1-shot (held-out train classes)" for n in WAYS],
-                         rows))
+    print(markdown_table(["distance terms", "KL", "spread"]
+                         + [f"{n}-way {k}-shot (held-out train classes)" for n, k in settings], rows))
     print(json.dumps(report))
 
 

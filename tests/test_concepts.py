@@ -77,6 +77,24 @@ def test_distance_over_a_property_subset():
         DistanceConfig(properties=())
 
 
+def test_distance_direction_swaps_the_arguments_and_covers_a_merged_class():
+    """KL(C_I || C_k) is KL(C_k || C_I) with the programs swapped, term by term. A class merged from
+    two distant shots is farther than a class between them from a query like one of its shots in the
+    paper's direction (the class's draws near its other shot fall outside the query), and nearer in
+    the other direction."""
+    rng = np.random.default_rng(5)
+    a, b = _program(rng), _program(rng, shift=0.05, shape=2)
+    paper, reverse = DistanceConfig(direction="class||image"), DistanceConfig(direction="image||class")
+    for name, value in kl_terms(a, b, reverse).items():
+        assert value == pytest.approx(kl_terms(b, a, paper)[name], rel=1e-9, abs=1e-9), name
+    merged, between = ProtoProgram.merge([_program(rng), _program(rng, shift=0.5)]), _program(rng, shift=0.25)
+    query = _program(rng)
+    assert classify([merged, between], query, paper).argmax() == 1
+    assert classify([merged, between], query, reverse).argmax() == 0
+    with pytest.raises(Exception, match="direction"):
+        DistanceConfig(direction="both")
+
+
 def test_merge_sample_log_prob_and_classify():
     rng = np.random.default_rng(3)
     shots = [_program(rng, shift=0.5, n=400) for _ in range(3)]
@@ -163,10 +181,11 @@ def test_fit_spread_recovers_the_within_class_covariance_and_the_error_rate():
         fit_spread({"a": programs["c0"][:1]}, shapes)
 
 
-def test_a_spread_makes_instances_of_one_concept_close_and_keeps_others_apart():
+@pytest.mark.parametrize("direction", ["class||image", "image||class"])
+def test_a_spread_makes_instances_of_one_concept_close_and_keeps_others_apart(direction):
     """Two sharp posteriors of one concept, 2 sd of its spread apart, are far apart as the paper's
     programs (the KL counts their distance in their own tiny widths) and close with the spread;
-    another concept, 10 sd away, stays much farther with the spread."""
+    another concept, 10 sd away, stays much farther with the spread. In either KL direction."""
     from mitsuba_p3.concepts import ConceptSpread
 
     rng = np.random.default_rng(1)
@@ -175,9 +194,11 @@ def test_a_spread_makes_instances_of_one_concept_close_and_keeps_others_apart():
     support = _sharp_instance(rng, np.full(3, 0.5), 0)
     same = _sharp_instance(rng, np.full(3, 0.6), 0)
     other = _sharp_instance(rng, np.full(3, 1.0), 0)
-    far, near = distance(support, same), distance(support.with_spread(spread), same.with_spread(spread))
-    assert far > 1000 and near < 20, (far, near)
-    assert distance(support.with_spread(spread), other.with_spread(spread)) > 5 * near
+    config = DistanceConfig(direction=direction)
+    far = distance(support, same, config)
+    near = distance(support.with_spread(spread), same.with_spread(spread), config)
+    assert far > 1000 and near < 25, (far, near)
+    assert distance(support.with_spread(spread), other.with_spread(spread), config) > 5 * near
     probabilities = spread.class_mixture(np.array([1.0, 0.0, 0.0]))
     np.testing.assert_allclose(probabilities, [0.9, 0.05, 0.05])
     with pytest.raises(Exception, match="spread_shots"):

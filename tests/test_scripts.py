@@ -9,7 +9,7 @@ import pytest
 
 from mitsuba_p3 import reproduce as tables
 from mitsuba_p3.concepts import CONTINUOUS, DistanceConfig, ProtoProgram
-from mitsuba_p3.evaluate import one_shot_accuracy
+from mitsuba_p3.evaluate import held_out_accuracy
 
 
 def program(rng, centre: float, spread: float, n: int = 200) -> ProtoProgram:
@@ -20,13 +20,24 @@ def program(rng, centre: float, spread: float, n: int = 200) -> ProtoProgram:
 
 
 @pytest.mark.parametrize("spread, expect_perfect", [(0.01, True), (10.0, False)])
-def test_one_shot_accuracy_separates_distinct_classes_only(spread, expect_perfect):
+def test_held_out_accuracy_separates_distinct_classes_only(spread, expect_perfect):
     """Well separated classes are always told apart; classes lost in their own noise are not."""
     rng = np.random.default_rng(0)
     programs = {f"c{i}": [program(rng, float(i), spread), program(rng, float(i), spread)] for i in range(12)}
-    accuracy = one_shot_accuracy(programs, 5, 20, 0, DistanceConfig(samples=100))
+    accuracy = held_out_accuracy(programs, 5, 20, 0, DistanceConfig(samples=100))
     assert (accuracy == 1.0) == expect_perfect
     assert 0.0 <= accuracy <= 1.0
+
+
+def test_held_out_accuracy_gains_from_more_shots_and_needs_them():
+    """Five merged supports pin a noisy class better than one, and a class with too few programs is refused."""
+    rng = np.random.default_rng(1)
+    programs = {f"c{i}": [program(rng, 0.6 * i + 0.5 * rng.standard_normal(), 0.05) for _ in range(6)]
+                for i in range(10)}
+    one, five = (held_out_accuracy(programs, 5, 40, 0, DistanceConfig(samples=100), k_shot=k) for k in (1, 5))
+    assert five > one
+    with pytest.raises(ValueError, match="6 programs per class"):
+        held_out_accuracy({**programs, "short": programs["c0"][:5]}, 5, 1, 0, DistanceConfig(samples=100), k_shot=5)
 
 
 def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_path):
@@ -40,7 +51,8 @@ def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_
                 "adi": {"mean": adi, "median": adi}, "attributes": {"shape_accuracy": accuracy, "images": 3}}
 
     for name, accuracy in (("fsclvr", 0.5), ("fsclvr-sigma0.1", 0.9), ("fsclvr/distance-colour+class", 0.7),
-                           ("fsclvr-sigma0.1/distance-colour", 0.8), ("fsclvr/spread0", 0.6)):
+                           ("fsclvr-sigma0.1/distance-colour", 0.8), ("fsclvr/spread0", 0.6),
+                           ("fsclvr/kl-class-image", 0.3), ("fsclvr/distance-colour-kl-class-image", 0.2)):
         (tmp_path / "runs" / name).mkdir(parents=True)
         (tmp_path / "runs" / name / "results.json").write_text(json.dumps({"results": {"p3": result(accuracy, 0.01)}}))
     # a baseline scored into runs/room, where no P3 run is (the P3 runs of a benchmark may all be fitted-noise ones)
@@ -49,7 +61,8 @@ def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_
         json.dumps({"model": "ProtoNets 56", **result(0.4, 0.0)}))
     found = tables.collect(tmp_path)
     assert set(found) == {("fsclvr", None, None), ("fsclvr", 0.1, None), ("fsclvr", None, "colour+class"),
-                          ("fsclvr", 0.1, "colour"), ("fsclvr", None, "spread0")}
+                          ("fsclvr", 0.1, "colour"), ("fsclvr", None, "spread0"), ("fsclvr", None, "kl-class-image"),
+                          ("fsclvr", None, "colour-kl-class-image")}
     tables.write_paper_tables(tmp_path, found)
     lines = (tmp_path / "accuracy.md").read_text().splitlines()
     assert any(line.startswith("| ProtoNets 56 | this project | - | 40.0/40.0/40.0/40.0 |") for line in lines)
@@ -57,6 +70,9 @@ def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_
     assert any(line.startswith("| P3 (sigma 0.1) | this project | 90.0/90.0/90.0/90.0 |") for line in lines)
     assert any(line.startswith("| P3 (colour+class) | this project | 70.0/70.0/70.0/70.0 |") for line in lines)
     assert any(line.startswith("| P3 (sigma 0.1, colour) | this project | 80.0/80.0/80.0/80.0 |") for line in lines)
+    assert any(line.startswith("| P3 (KL(class || image)) | this project | 30.0/30.0/30.0/30.0 |") for line in lines)
+    assert any(line.startswith("| P3 (colour, KL(class || image)) | this project | 20.0/20.0/20.0/20.0 |")
+               for line in lines)
     assert any(line.startswith("| P3 (no concept spread) | this project | 60.0/60.0/60.0/60.0 |") for line in lines)
     assert all((tmp_path / "figures" / f"{name}.png").stat().st_size > 5000 for name in ("accuracy", "attributes"))
     adi = (tmp_path / "adi.md").read_text()

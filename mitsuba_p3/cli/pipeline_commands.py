@@ -19,6 +19,8 @@ NOISE_HELP = ("Noise model: fitted (the Gaussian fitted to the model's train res
               "robust (the fitted inlier/outlier mixture) or paper (sigma 1, no shadows: the paper's).")
 SPREAD_HELP = ("Train images per train class whose posteriors fit the protoprograms' concept spread "
                "(sampled like the test images; 0: the paper's programs, tables in RUN/spread0).")
+KL_HELP = ("The distance's KL direction: image||class (KL(C_I || C_k), chosen on held-out train classes' 1- and "
+           "5-shot episodes, docs/results.md) or class||image (the paper's; tables in RUN/kl-class-image).")
 SAMPLER_HELP_TEXT = ("auto (smc under a fitted noise model, mh under the paper's), smc (tempered SMC over the "
                      "shape classes, weighed by their evidence) or mh (multi-chain Metropolis-Hastings; the chain "
                      "options apply).")
@@ -142,6 +144,7 @@ def evaluate(
                                              "colour+class; another distance reuses the run's posteriors and "
                                              "writes its tables to RUN/distance-TERMS."),
     spread_shots: int = typer.Option(DistanceConfig.spread_shots, help=SPREAD_HELP),
+    kl: str = typer.Option(DistanceConfig.direction, "--kl", help=KL_HELP),
     spread_from: Optional[Path] = typer.Option(None, help="For a data set without train classes (ood): the "
                                                           "evaluation run of the model's own benchmark, same "
                                                           "settings, whose concept spread to use."),
@@ -157,7 +160,7 @@ def evaluate(
     config = EvaluationConfig(likelihoods=chosen, sigma=sigma, noise=noise, renderer=renderer, episodes=episodes,
                               jobs=jobs,
                               dask=dask, distance=DistanceConfig(properties=parse_properties(distance),
-                                                                 spread_shots=spread_shots),
+                                                                 spread_shots=spread_shots, direction=kl),
                               sampler=choose_sampler(sampler, SamplerConfig(
                                   chains=chains, steps=steps, burn_in=burn_in, tune_rounds=tune_rounds,
                                   tune_steps=tune_steps, seed=seed), particles, noise, sigma))
@@ -196,6 +199,7 @@ def reproduce(
     distance: str = typer.Option("all", help="Distance terms: 'all' or e.g. colour+class (tables in "
                                              "runs/V/distance-TERMS; the posteriors are shared)."),
     spread_shots: int = typer.Option(DistanceConfig.spread_shots, help=SPREAD_HELP),
+    kl: str = typer.Option(DistanceConfig.direction, "--kl", help=KL_HELP),
     resolution: Optional[str] = typer.Option(None, help="HxW of benchmarks generated here (default: 480x640); "
                                                         "folders already made must match it."),
 ) -> None:
@@ -214,7 +218,7 @@ def reproduce(
     evaluation = EvaluationConfig(likelihoods=tuple(k.strip() for k in likelihoods.split(",") if k.strip()),
                                   sigma=sigma, noise=noise, sampler=sampler, episodes=episodes, jobs=jobs,
                                   distance=DistanceConfig(properties=parse_properties(distance),
-                                                          spread_shots=spread_shots))
+                                                          spread_shots=spread_shots, direction=kl))
     height, width = parse_resolution(resolution)
     config = ReproduceConfig(benchmarks=tuple(b.strip() for b in benchmarks.split(",") if b.strip()),
                              evaluation=evaluation, resolution=(height, width) if height else None)

@@ -33,12 +33,12 @@ from __future__ import annotations
 
 from .config import PRESET, EvaluationConfig
 from .jobs import CachedPosterior, check_run, compute_posteriors, posterior_path, worker_threads
-from .metrics import (SETTINGS, classify_episodes, expected_calibration_error, feasible_settings, interval95,
-                      one_shot_accuracy, setting_name)
+from .metrics import (SETTINGS, classify_episodes, expected_calibration_error, feasible_settings,
+                      held_out_accuracy, interval95, setting_name)
 from .run import evaluate
 from .tables import load_baselines, markdown_table, tables_dir, write_tables
 
 __all__ = ["PRESET", "SETTINGS", "CachedPosterior", "EvaluationConfig", "check_run", "classify_episodes",
-           "compute_posteriors", "evaluate", "expected_calibration_error", "feasible_settings", "interval95",
-           "load_baselines", "markdown_table", "one_shot_accuracy", "posterior_path", "setting_name",
+           "compute_posteriors", "evaluate", "expected_calibration_error", "feasible_settings", "held_out_accuracy",
+           "interval95", "load_baselines", "markdown_table", "posterior_path", "setting_name",
            "tables_dir", "worker_threads", "write_tables"]

@@ -71,19 +71,24 @@ def classify_episodes(dataset: Dataset, cached: dict, n_way: int, k_shot: int, c
     return rows
 
 
-def one_shot_accuracy(programs: dict[str, list[ProtoProgram]], n_way: int, episodes: int, seed: int,
-                      config: DistanceConfig) -> float:
-    """Mean accuracy of seeded N-way 1-shot episodes over the classes of ``programs`` (class -> its
-    shots' programs, 2 or more): per chosen class one shot is the support, another the query. For
-    choices made on train classes (``scripts/select_sigma.py``, ``scripts/select_distance.py``)."""
+def held_out_accuracy(programs: dict[str, list[ProtoProgram]], n_way: int, episodes: int, seed: int,
+                      config: DistanceConfig, k_shot: int = 1) -> float:
+    """Mean accuracy of seeded N-way K-shot episodes over the classes of ``programs`` (class -> its
+    shots' programs, K + 1 or more): per chosen class K shots, merged, are the support and another
+    is the query. For choices made on train classes (``scripts/select_sigma.py``,
+    ``scripts/select_distance.py``, ``scripts/select_spread.py``)."""
     rng = np.random.default_rng([seed, n_way])
     names = sorted(programs)
+    short = [c for c in names if len(programs[c]) < k_shot + 1]
+    if short:
+        raise ValueError(f"{k_shot}-shot episodes need {k_shot + 1} programs per class; "
+                         f"{', '.join(short[:3])}{' ...' if len(short) > 3 else ''} have fewer")
     correct = []
     for _ in range(episodes):
         chosen = [names[i] for i in rng.choice(len(names), size=n_way, replace=False)]
-        pairs = [rng.choice(len(programs[c]), size=2, replace=False) for c in chosen]
-        support = [programs[c][s] for c, (s, _) in zip(chosen, pairs)]
-        queries = [programs[c][q] for c, (_, q) in zip(chosen, pairs)]
+        picks = [rng.choice(len(programs[c]), size=k_shot + 1, replace=False) for c in chosen]
+        support = [ProtoProgram.merge([programs[c][s] for s in pick[:-1]]) for c, pick in zip(chosen, picks)]
+        queries = [programs[c][pick[-1]] for c, pick in zip(chosen, picks)]
         probabilities = classify_many(support, queries, config)
         correct += list(np.argmax(probabilities, axis=1) == np.arange(n_way))
     return float(np.mean(correct))
