@@ -260,10 +260,11 @@ def write_paper_tables(out: Path, results: dict) -> None:
     note = ("\nCells: 5-way 1-shot / 5-way 5-shot / 10-way 1-shot / 10-way 5-shot accuracy (%). "
             "OOD has 10 test classes. Rows without a note use the paper's likelihood (sigma 1, no outliers, no "
             "shadows); 'fitted noise' rows the noise model fitted to each benchmark's train residuals. Rows "
-            "without distance terms use the paper's distance (all seven terms), over programs widened by the "
-            "concept spread fitted on train classes unless marked 'no concept spread'. Sigma and distance terms "
-            "were chosen on train classes (scripts/select_sigma.py, scripts/select_distance.py), the spread on "
-            "held-out train classes (scripts/select_spread.py). "
+            "without distance terms use all seven of the paper's terms, over programs widened by the concept "
+            "spread fitted on train classes unless marked 'no concept spread', each KL turned round "
+            "(KL(C_I || C_k)) unless marked 'KL(class || image)', the paper's direction. Sigma and distance "
+            "terms were chosen on train classes (scripts/select_sigma.py, scripts/select_distance.py), the "
+            "spread and the KL's direction on held-out train classes (scripts/select_spread.py). "
             "The paper's numbers are on its own data sets: compare in spirit.\n")
     atomic_write(out / "accuracy.md", markdown_table(header, rows) + note)
     with atomic_open(out / "accuracy.csv") as f:

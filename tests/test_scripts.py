@@ -29,15 +29,22 @@ def test_held_out_accuracy_separates_distinct_classes_only(spread, expect_perfec
     assert 0.0 <= accuracy <= 1.0
 
 
-def test_held_out_accuracy_gains_from_more_shots_and_needs_them():
-    """Five merged supports pin a noisy class better than one, and a class with too few programs is refused."""
+def test_held_out_accuracy_k_shot_episodes_and_the_kl_direction():
+    """Classes whose images fall in two modes (10 apart): one shot is often in the query's other mode,
+    five always cover both. Under KL(C_I || C_k) five shots then beat one; under the paper's
+    KL(C_k || C_I) the merged class's draws in its other mode push every class away and five shots
+    lose. A class with too few programs for the setting is refused."""
     rng = np.random.default_rng(1)
-    programs = {f"c{i}": [program(rng, 0.6 * i + 0.5 * rng.standard_normal(), 0.05) for _ in range(6)]
-                for i in range(10)}
-    one, five = (held_out_accuracy(programs, 5, 40, 0, DistanceConfig(samples=100), k_shot=k) for k in (1, 5))
-    assert five > one
+    programs = {f"c{i}": [program(rng, float(i + 10 * (j % 2)), 0.05) for j in range(6)] for i in range(10)}
+
+    def accuracy(k_shot, direction, data=programs, episodes=40):
+        return held_out_accuracy(data, 5, episodes, 0, DistanceConfig(samples=100, direction=direction), k_shot)
+
+    one = accuracy(1, "image||class")
+    assert accuracy(5, "image||class") > one + 0.1
+    assert accuracy(5, "class||image") < one - 0.1
     with pytest.raises(ValueError, match="6 programs per class"):
-        held_out_accuracy({**programs, "short": programs["c0"][:5]}, 5, 1, 0, DistanceConfig(samples=100), k_shot=5)
+        accuracy(5, "image||class", {**programs, "short": programs["c0"][:5]}, 1)
 
 
 def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_path):

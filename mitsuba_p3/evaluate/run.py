@@ -172,5 +172,6 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
             writer.writerows(attributes)
         files = write_tables(out, results, baselines_dir=run_dir)
         atomic_json(out / "results.json", {"dataset": str(dataset.root), "results": results,
-                                           "distance": list(config.distance.properties), "files": files})
+                                           "distance": list(config.distance.properties),
+                                           "kl": config.distance.direction, "files": files})
         return results
