@@ -195,7 +195,7 @@ def _noise_order(sigma) -> tuple:
 
 def collect(out: Path) -> dict:
     """Every evaluated run under ``out/runs``: {(benchmark, sigma, distance): {likelihood: result}}, where
-    distance is None for the paper's and e.g. ``colour+class`` for tables in ``runs/V/distance-colour+class``
+    distance is None for the default distance and e.g. ``colour+class`` for tables in ``runs/V/distance-colour+class``
     (``spread0`` for the paper's distance over programs without a concept spread, ``kl-class-image`` for the
     paper's KL direction)."""
     found = {}

@@ -41,7 +41,8 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--shots", default="1", help="K of the K-shot episodes, e.g. 1,5")
-    parser.add_argument("--directions", default="class||image", help="KL directions, e.g. class||image,image||class")
+    parser.add_argument("--directions", default=DistanceConfig.direction,
+                        help="KL directions, e.g. class||image,image||class (the paper's first)")
     parser.add_argument("--spreads", default="none,fitted", help="none (the paper's programs), fitted, or both")
     args = parser.parse_args()
     try:

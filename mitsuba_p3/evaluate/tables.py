@@ -11,8 +11,8 @@ from .metrics import SETTINGS, setting_name
 
 
 def tables_dir(run_dir: Path, distance: DistanceConfig) -> Path:
-    """Where a run's tables for ``distance`` go: the run folder for the paper's distance (all
-    terms), ``RUN/distance-colour+class`` (say) for another, its terms in the order of
+    """Where a run's tables for ``distance`` go: the run folder for the default distance (all
+    terms, the default spread and KL direction), ``RUN/distance-colour+class`` (say) for another, its terms in the order of
     ``PROPERTIES`` (the distance is their sum), with ``-spreadN`` (``spread0``: no spread) for
     programs whose concept spread differs from the default and ``-kl-class-image`` (say) for the KL's
     other direction; the posteriors are shared."""
