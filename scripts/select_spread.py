@@ -47,12 +47,13 @@ def main() -> None:
     args = parser.parse_args()
     try:
         subsets = [(s, parse_properties(s)) for s in args.subsets.split(",")]
+        configs = [(label, direction, DistanceConfig(properties=properties, direction=direction))
+                   for label, properties in subsets for direction in args.directions.split(",")]
     except MitsubaP3Error as error:
         parser.error(str(error))
     shots = [int(k) for k in args.shots.split(",")]
     if not set(args.spreads.split(",")) <= {"none", "fitted"}:
         parser.error(f"--spreads: choose none, fitted or none,fitted; got {args.spreads!r}")
-    directions = args.directions.split(",")
     dataset = load_dataset(args.dataset)
     programs = {name: found for name, found in
                 cached_train_programs(dataset, args.run, args.likelihood, DistanceConfig.max_points).items()
@@ -71,25 +72,17 @@ def main() -> None:
               f"{spread.class_error:.3f}; sd " + ", ".join(
                   f"{k} {np.sqrt(np.diag(v)).round(4).tolist()}" for k, v in spread.covariance.items()), flush=True)
     settings = [(n_way, k_shot) for n_way in WAYS for k_shot in shots]
+    # each fold's programs under each spread, built once (their KDEs are cached on them)
+    scored = {name: [{c: [p.with_spread(spreads[f] if name == "fitted" else None) for p in programs[c]]
+                      for c in fold} for f, fold in enumerate(folds)] for name in args.spreads.split(",")}
     rows, report = [], {}
-    for label, properties in subsets:
-        for direction in directions:
-            try:
-                config = DistanceConfig(properties=properties, direction=direction)
-            except MitsubaP3Error as error:
-                parser.error(str(error))
-            for spread_name in args.spreads.split(","):
-                cells = []
-                for n_way, k_shot in settings:
-                    scores = []
-                    for f, fold in enumerate(folds):
-                        spread = spreads[f] if spread_name == "fitted" else None
-                        scored = {c: [p.with_spread(spread) for p in programs[c]] for c in fold}
-                        scores.append(held_out_accuracy(scored, n_way, args.episodes, args.seed, config, k_shot))
-                    cells.append(100 * float(np.mean(scores)))
-                report[f"{label}/{direction}/{spread_name}"] = cells
-                rows.append([label, direction, spread_name] + [f"{c:.1f}" for c in cells])
-                print(f"{label} {direction} spread {spread_name}: {' / '.join(rows[-1][3:])}", flush=True)
+    for label, direction, config in configs:
+        for spread_name, by_fold in scored.items():
+            cells = [100 * float(np.mean([held_out_accuracy(fold, n_way, args.episodes, args.seed, config, k_shot)
+                                          for fold in by_fold])) for n_way, k_shot in settings]
+            report[f"{label}/{direction}/{spread_name}"] = cells
+            rows.append([label, direction, spread_name] + [f"{c:.1f}" for c in cells])
+            print(f"{label} {direction} spread {spread_name}: {' / '.join(rows[-1][3:])}", flush=True)
     print()
     print(markdown_table(["distance terms", "KL", "spread"]
                          + [f"{n}-way {k}-shot (held-out train classes)" for n, k in settings], rows))
