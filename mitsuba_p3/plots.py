@@ -170,11 +170,36 @@ def reparametrisation(prior, path: str | Path, samples: int = 20000, seed: int =
 
 # ---------------------------------------------------------------- inference figures
 def posterior_renders(observed: np.ndarray, estimate_render: np.ndarray, samples: np.ndarray,
-                      path: str | Path, title: str = "") -> Path:
-    """The observation, the render of the point estimate, and renders of posterior draws."""
+                      path: str | Path, title: str = "", box: tuple[int, int, int, int] | None = None) -> Path:
+    """The observation, the render of the point estimate, and renders of posterior draws. With
+    ``box`` (top, left, height, width) every panel but a first whole observation shows that crop,
+    so a small object fills the panel."""
     images = [observed, estimate_render] + list(samples)
     titles = ["observation", "point estimate"] + [f"posterior draw {i + 1}" for i in range(len(samples))]
+    if box is not None:
+        top, left, height, width = box
+        images = [observed] + [image[top:top + height, left:left + width] for image in images]
+        titles = ["observation (whole)"] + [f"{t} (zoomed)" for t in titles]
     return image_grid(images, titles, path, columns=min(4, len(images)), title=title or "posterior")
+
+
+def object_box(estimate_render: np.ndarray, empty_render: np.ndarray, context: float = 2.0,
+               threshold: float = 0.02) -> tuple[int, int, int, int] | None:
+    """A box (top, left, height, width) with the image's aspect around where a render differs from the
+    empty floor's (object and shadow), ``context`` times that region's size and at least a quarter of
+    the image's height; None when the render does not differ or the box would be most of the image."""
+    rows, cols = np.nonzero(np.max(np.abs(np.asarray(estimate_render) - np.asarray(empty_render)), axis=-1) > threshold)
+    image_h, image_w = estimate_render.shape[:2]
+    if rows.size == 0:
+        return None
+    aspect = image_w / image_h
+    height = max(context * (np.ptp(rows) + 1), context * (np.ptp(cols) + 1) / aspect, image_h / 4)
+    height, width = int(round(height)), int(round(height * aspect))
+    if height >= 0.75 * image_h:
+        return None
+    top = int(np.clip((rows.min() + rows.max() + 1 - height) // 2, 0, image_h - height))
+    left = int(np.clip((cols.min() + cols.max() + 1 - width) // 2, 0, image_w - width))
+    return top, left, height, width
 
 
 def hdi_levels(density: np.ndarray, masses: Sequence[float]) -> list[float]:
@@ -249,7 +274,8 @@ def trace_plot(idata, path: str | Path, variables: Sequence[str] = ("shift", "sc
 
 def reliability_diagram(path: str | Path, results: dict, settings: Sequence[str]) -> Path:
     """Accuracy against confidence per few-shot setting, one line per model (``results``: model ->
-    its evaluation results, whose accuracy per setting carries the reliability bins)."""
+    its evaluation results, whose accuracy per setting carries the reliability bins; a lower-case
+    model name such as ``p3`` is shown in capitals)."""
     plt = _pyplot()
     settings = [name for name in settings if any(name in r["accuracy"] for r in results.values())]
     figure, axes = plt.subplots(1, len(settings), figsize=(3.2 * len(settings), 3.2), squeeze=False)
@@ -261,7 +287,7 @@ def reliability_diagram(path: str | Path, results: dict, settings: Sequence[str]
                 continue
             bins = [b for b in acc["reliability"] if b[2] > 0]
             ax.plot([b[0] for b in bins], [b[1] for b in bins], marker="o",
-                    label=f"{likelihood.upper()} (ECE {acc['ece']:.3f})")
+                    label=f"{likelihood.upper() if likelihood.islower() else likelihood} (ECE {acc['ece']:.3f})")
         ax.set_title(name)
         ax.set_xlabel("confidence")
         ax.set_xlim(0, 1)

@@ -12,6 +12,11 @@ fits and per-image posteriors already on disk are reused. Writes, in ``out``:
 - ``adi.md`` / ``adi.csv``: mean ADI (metres) per benchmark beside the paper's;
 - ``figures/accuracy.png``: the accuracy table as bars with 95% intervals, the paper's P3 as ticks;
   ``figures/attributes.png``: how often each row's posteriors name shape, material, size and colour right;
+  ``figures/reliability-V.png``: per benchmark, accuracy against confidence of its rows' episodes;
+  ``figures/posterior-V.png``: per benchmark, one test image's posterior (the observation, the point
+  estimate's render and renders of six draws), sampled again with the run's settings
+  (:func:`posterior_figure`; its posterior and the other figures of ``mitsuba-p3 infer`` in
+  ``runs/V/example``);
 - ``runs/V``: one evaluation run folder per benchmark, with its own tables and figures;
 - ``timing.json``: the minutes of every benchmark of every invocation.
 
@@ -123,9 +128,10 @@ def reproduce(data: str | Path, out: str | Path, config: ReproduceConfig | None 
             # ood has no train classes: its programs take the concept spread of the fsclvr run
             spread_from = out / "runs" / run_name("fsclvr", noise)
             sample_spread(data / "fsclvr", model, spread_from, evaluation, track)
-        evaluate(folder, model, out / "runs" / run_name(variant, noise), evaluation, progress=track,
-                 spread_from=spread_from)
+        run_dir = out / "runs" / run_name(variant, noise)
+        evaluate(folder, model, run_dir, evaluation, progress=track, spread_from=spread_from)
         minutes[variant] = (time.perf_counter() - start) / 60
+        posterior_figure(folder, model, run_dir, evaluation, out / "figures" / f"posterior-{variant}.png")
         # the tables cover every benchmark and sigma evaluated so far, this run's included
         write_paper_tables(out, collect(out))
         # wall-clock minutes per invocation, appended: a resumed reproduction adds its parts up
@@ -193,6 +199,41 @@ def _noise_order(sigma) -> tuple:
     return (0, 0.0) if sigma is None else (2, float(sigma))
 
 
+def example_shot(dataset):
+    """The test image a benchmark's posterior figure shows: a seeded choice, so every run shows the same."""
+    import numpy as np
+
+    test = dataset.split("test")
+    return test[int(np.random.default_rng(0).integers(len(test)))]
+
+
+def posterior_figure(folder: Path, model: Path, run_dir: Path, evaluation: EvaluationConfig, figure: Path) -> Path:
+    """One test image's posterior, sampled with the run's first likelihood, noise and sampler, written
+    as ``mitsuba-p3 infer`` writes it to ``run_dir/example``, and its renders copied to ``figure``.
+    Kept once made (a resumed reproduction does not sample it again)."""
+    import shutil
+
+    from .benchmarks.dataset import load_dataset
+    from .fit.model import FittedModel
+    from .infer.posterior import default_likelihood, infer_image
+    from .infer.report import write_report
+
+    example = run_dir / "example"
+    if not (example / "posterior.png").is_file():
+        dataset = load_dataset(folder)
+        shot = example_shot(dataset)
+        fitted = FittedModel(model)
+        likelihood = default_likelihood(fitted, evaluation.likelihoods[0], evaluation.sigma, evaluation.noise)
+        posterior = infer_image(fitted, dataset.image(shot), likelihood, evaluation.sampler,
+                                renderer=evaluation.renderer,
+                                attrs={"image": str(shot.file), "class": shot.class_name})
+        write_report(posterior, fitted, example, renderer=evaluation.renderer,
+                     truth={"shift": shot.position[:2].tolist()})
+    figure.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(example / "posterior.png", figure)
+    return figure
+
+
 def collect(out: Path) -> dict:
     """Every evaluated run under ``out/runs``: {(benchmark, sigma, distance): {likelihood: result}}, where
     distance is None for the default distance and e.g. ``colour+class`` for tables in ``runs/V/distance-colour+class``
@@ -214,9 +255,10 @@ def collect(out: Path) -> dict:
 
 def write_figures(out: Path, panels: dict[str, dict[str, dict]], posteriors: dict[str, dict[str, dict]]) -> None:
     """``figures/accuracy.png`` (accuracy per setting, 95% intervals, the paper's P3 as ticks) from
-    ``panels``, and ``figures/attributes.png`` (attribute recovery) from ``posteriors``: benchmark ->
-    {row name: its evaluation results}, one row per set of posteriors."""
-    from .plots import accuracy_bars, attribute_bars
+    ``panels``, and ``figures/attributes.png`` (attribute recovery) and ``figures/reliability-V.png``
+    (calibration per benchmark) from ``posteriors``: benchmark -> {row name: its evaluation results},
+    one row per set of posteriors."""
+    from .plots import accuracy_bars, attribute_bars, reliability_diagram
 
     names = [setting_name(n, k) for n, k in SETTINGS]
     accuracy = {TITLES[c]: {row: {n: (r["accuracy"][n]["mean"], r["accuracy"][n]["half_width"])
@@ -230,6 +272,9 @@ def write_figures(out: Path, panels: dict[str, dict[str, dict]], posteriors: dic
     attributes = {c: rows for c, rows in attributes.items() if rows}
     if attributes:
         attribute_bars(out / "figures" / "attributes.png", attributes)
+    for c, rows in posteriors.items():
+        if rows:
+            reliability_diagram(out / "figures" / f"reliability-{c}.png", rows, names)
 
 
 def write_paper_tables(out: Path, results: dict) -> None:

@@ -294,3 +294,22 @@ def test_a_second_run_into_a_busy_folder_is_refused(bench, tmp_path):
     holder.wait()
     with folder_lock(tmp_path / "run", "test"):             # released with its dead holder
         pass
+
+
+def test_reproduce_writes_one_posterior_figure_per_benchmark_once(bench, tmp_path):
+    """``reproduce``'s posterior figure: a seeded test image's posterior, sampled with the run's settings
+    and written as ``infer`` writes it; a resumed reproduction copies it and does not sample again."""
+    from mitsuba_p3.reproduce import example_shot, posterior_figure
+
+    config = EvaluationConfig(likelihoods=("p3",), noise="paper", sampler=TINY)
+    figure = posterior_figure(bench / "data", bench / "model", tmp_path / "run", config,
+                              tmp_path / "figures" / "posterior-fsclvr.png")
+    example = tmp_path / "run" / "example"
+    estimate = json.loads((example / "estimate.json").read_text())
+    assert figure.stat().st_size > 5000 and (example / "posterior.nc").is_file()
+    assert estimate["attributes"]["shape"] in ("sphere", "cube", "cylinder")
+    shot = example_shot(load_dataset(bench / "data"))
+    assert shot.split == "test" and example_shot(load_dataset(bench / "data")).index == shot.index
+    made = (example / "posterior.nc").stat().st_mtime_ns
+    posterior_figure(bench / "data", bench / "model", tmp_path / "run", config, figure)
+    assert (example / "posterior.nc").stat().st_mtime_ns == made

@@ -53,7 +53,7 @@ def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_
     assert tables.parse_run_name("scratch") is None and tables.parse_run_name("fsclvr-sigmaX") is None
 
     def result(accuracy: float, adi: float) -> dict:
-        cell = {"mean": accuracy, "half_width": 0.01, "ece": 0.1}
+        cell = {"mean": accuracy, "half_width": 0.01, "ece": 0.1, "reliability": [[0.55, accuracy, 10], [0.9, 0.8, 0]]}
         return {"accuracy": {f"{n}-way {k}-shot": cell for n, k in tables.SETTINGS},
                 "adi": {"mean": adi, "median": adi}, "attributes": {"shape_accuracy": accuracy, "images": 3}}
 
@@ -81,7 +81,8 @@ def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_
     assert any(line.startswith("| P3 (colour, KL(class || image)) | this project | 20.0/20.0/20.0/20.0 |")
                for line in lines)
     assert any(line.startswith("| P3 (no concept spread) | this project | 60.0/60.0/60.0/60.0 |") for line in lines)
-    assert all((tmp_path / "figures" / f"{name}.png").stat().st_size > 5000 for name in ("accuracy", "attributes"))
+    assert all((tmp_path / "figures" / f"{name}.png").stat().st_size > 5000
+               for name in ("accuracy", "attributes", "reliability-fsclvr"))
     adi = (tmp_path / "adi.md").read_text()
     assert "P3 (sigma 0.1) mean ADI" in adi and "colour" not in adi  # ADI does not depend on the distance
 

@@ -1,6 +1,7 @@
 """Write a posterior and the figures a person looks at into a folder."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -49,12 +50,17 @@ def write_report(posterior: Posterior, fitted: FittedModel, out: str | Path, ren
 
     observed = np.asarray(posterior.idata.observed_data["image"].values, np.float32)
     height, width = observed.shape[:2]
-    render = make_renderer(fitted.scene(), "mitsuba", height=height, width=width, shadows=False)
+    # the renders the likelihood compared: with hard shadows when its noise model had them
+    noise = attrs.get("noise", "{}")
+    shadows = bool((json.loads(noise) if isinstance(noise, str) else noise).get("shadows", False))
+    render = make_renderer(fitted.scene(), "mitsuba", height=height, width=width, shadows=shadows)
     rng = np.random.default_rng(0)
     indices = rng.choice(len(posterior.draws("theta")), size=samples, replace=False)
+    estimate_render = render.render(estimate_params(estimate))
     written["figure_renders"] = str(plots.posterior_renders(
-        observed, render.render(estimate_params(estimate)), render.render(draw_params(posterior, indices)),
-        out / "posterior.png", f"{estimate['shape']} (p = {estimate['class_frequencies'][estimate['shape']]:.2f})"))
+        observed, estimate_render, render.render(draw_params(posterior, indices)), out / "posterior.png",
+        f"{estimate['shape']} (p = {estimate['class_frequencies'][estimate['shape']]:.2f})",
+        box=plots.object_box(estimate_render, render.render_empty())))
     written["figure_translation"] = str(plots.translation_contours(
         posterior.draws("shift"), out / "translation.png", truth=(truth or {}).get("shift")))
     written["figure_colour"] = str(plots.colour_posterior(posterior.draws("colour"), out / "colour.png",
