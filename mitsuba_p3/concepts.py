@@ -46,7 +46,7 @@ expected log predictive density of the query's posterior under the concept,
 which a mixture of shots makes larger, not smaller. In 1-shot episodes, with
 both programs one posterior, the two directions differ little. Chosen on
 held-out train classes' 1- and 5-shot episodes (``scripts/select_spread.py
---shots 1,5 --directions ...``; docs/results.md); ``class||image`` is the paper's.
+--shots 1,5 --directions ...``; docs/notebook.md); ``class||image`` is the paper's.
 
 Every density of the project speaks one vocabulary: ``log_prob(x)`` and
 ``sample(rng, n)`` (:class:`GaussianKde`, :class:`ProtoProgram`, and the prior's
@@ -78,7 +78,7 @@ class DistanceConfig:
     # train images per train class whose posteriors fit the programs' ConceptSpread (0: the paper's programs)
     spread_shots: int = 3
     # the KL's direction: "image||class" (KL(C_I || C_k); chosen on held-out train classes' 1- and 5-shot
-    # episodes, docs/results.md) or "class||image" (the paper's, KL(C_k || C_I))
+    # episodes, docs/notebook.md) or "class||image" (the paper's, KL(C_k || C_I))
     direction: str = "image||class"
 
     def __post_init__(self):

@@ -2,7 +2,7 @@
 
 A small object covers about 9x9 pixels at 120x160, and a wrong shape free to take its own
 pose, size and material comes within about 9 nats of the true one there
-(docs/results.md). Before building a finer window for small objects into the sampler,
+(docs/notebook.md). Before building a finer window for small objects into the sampler,
 this probe measures what twice the linear resolution would buy.
 
 The fitted world (scene, lights, materials, priors) does not depend on the image size; the

@@ -20,7 +20,7 @@ NOISE_HELP = ("Noise model: fitted (the Gaussian fitted to the model's train res
 SPREAD_HELP = ("Train images per train class whose posteriors fit the protoprograms' concept spread "
                "(sampled like the test images; 0: the paper's programs, tables in RUN/spread0).")
 KL_HELP = ("The distance's KL direction: image||class (KL(C_I || C_k), chosen on held-out train classes' 1- and "
-           "5-shot episodes, docs/results.md) or class||image (the paper's; tables in RUN/kl-class-image).")
+           "5-shot episodes, docs/notebook.md) or class||image (the paper's; tables in RUN/kl-class-image).")
 SAMPLER_HELP_TEXT = ("auto (smc under a fitted noise model, mh under the paper's), smc (tempered SMC over the "
                      "shape classes, weighed by their evidence) or mh (multi-chain Metropolis-Hastings; the chain "
                      "options apply).")
@@ -137,7 +137,7 @@ def evaluate(
     sampler: str = typer.Option("auto", help=SAMPLER_HELP_TEXT),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
     noise: str = typer.Option("fitted", help=NOISE_HELP + " fitted, chosen on held-out train classes "
-                                             "(docs/results.md); paper reproduces the paper's rows."),
+                                             "(docs/notebook.md); paper reproduces the paper's rows."),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
                                                      "dark set)."),
     distance: str = typer.Option("all", help="Distance terms: 'all' (the paper's) or some joined by '+', e.g. "

@@ -19,7 +19,7 @@ PRESET = SamplerConfig(chains=8, steps=200, burn_in=30, tune_rounds=3, tune_step
 class EvaluationConfig:
     likelihoods: tuple = ("p3", "np3")
     sigma: float | None = None   # colour-likelihood sigma in the paper's form; None: as ``noise`` says
-    # fitted (the default; chosen on held-out train classes, docs/results.md): the model's Gaussian noise
+    # fitted (the default; chosen on held-out train classes, docs/notebook.md): the model's Gaussian noise
     # model with hard shadows; robust: its inlier/outlier mixture; paper: sigma 1, no shadows
     noise: str = "fitted"
     renderer: str = "mitsuba"

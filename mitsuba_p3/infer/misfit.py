@@ -6,7 +6,7 @@ The inference model is Phong: an ambient and a diffuse term in the object's colo
 specular lobe. Phong explains a rubber almost to the noise; it cannot make a metal's mirrored
 surroundings, so a metal's posterior settles on some flat, dim compromise whose medians (k_a, k_d,
 k_s, alpha) say little, and a gray metal sphere's compromise looks like a dark gray rubber
-(docs/results.md). What *does* tell them apart is how much is left over.
+(docs/notebook.md). What *does* tell them apart is how much is left over.
 
 :func:`phong_misfit` measures it at a posterior's pose estimate. On the object's pixels the image
 is linear in the material given the pose, the class and the shininess (the renderer's material

@@ -54,7 +54,7 @@ so (c s, k_a / s, k_d / s) renders the same scene for every s > 0, and the mater
 is sharp. After every walk, ``ridge`` MH moves propose log s ~ N(0, 0.2^2) and accept with the
 prior's ratio times the Jacobian s, without a render
 (:meth:`~mitsuba_p3.infer.model.PosteriorCore.ridge_move`). Chosen on train images of fsclvr
-(``docs/results.md``): with three per walk, the colour's R-hat across four seeds fell from
+(``docs/notebook.md``): with three per walk, the colour's R-hat across four seeds fell from
 1.11 to 1.02 (median of six images) and 1-shot accuracy on held-out train classes rose from
 93.6 / 87.5 to 95.2 / 91.1 (5-way / 10-way, with the concept spread).
 
