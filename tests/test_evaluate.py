@@ -65,6 +65,7 @@ def test_evaluate_resumes_after_kill_and_writes_tables(bench, tmp_path):
     assert spread["classes"] == 5 and spread["images"] == 15 and 0 <= spread["class_error"] <= 1
     assert not list(folder.glob("*.tmp*"))
     results = json.loads((run / "results.json").read_text())["results"]["p3"]
+    assert json.loads((run / "material-rule-p3.json").read_text())["format"] == "mitsuba-p3-material-rule"
     accuracy = results["accuracy"]["5-way 1-shot"]
     assert 0.0 <= accuracy["mean"] <= 1.0 and accuracy["episodes"] == 20 and 0 <= accuracy["ece"] <= 1
     assert "5-way 5-shot" not in results["accuracy"]      # 3 shots per class cannot make it

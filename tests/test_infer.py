@@ -481,3 +481,43 @@ def test_sbc_runs_on_the_phong_model_and_resumes(fitted, tmp_path):
     assert set(more.summary()["rank_uniformity_p"]) and 0 <= more.summary()["class"]["ece"] <= 1
     with pytest.raises(ConfigError, match="power 1"):
         run_sbc(PosteriorCore(fitted, LikelihoodConfig("p3", sigma=0.03, power=0.1), "mitsuba", *RES), sample, 1, 9)
+
+
+def test_infer_names_the_material_by_a_rule_saved_by_evaluate(fitted, observed, tmp_path):
+    """A material rule learnt from train posteriors (here: made-up ones, with their Phong misfits) is
+    saved as plain numbers, read back with the same decisions, and ``infer``'s report uses it, the
+    posterior's Phong misfit included; a file that is not a rule is refused."""
+    from mitsuba_p3.errors import ConfigError
+    from mitsuba_p3.fit.attributes import rules_for
+    from mitsuba_p3.infer.report import read_material_rule, write_report
+
+    rng = np.random.default_rng(0)
+
+    def samples(ambient, diffuse, specular, n=30):
+        jitter = lambda v: np.abs(v + 0.02 * rng.standard_normal((n, 1)))  # noqa: E731
+        return {"class": np.zeros(n, int), "scale": np.full((n, 3), 0.03), "colour": np.tile([0.6, 0.2, 0.2], (n, 1)),
+                "ambient": jitter(ambient), "diffuse": jitter(diffuse), "specular": jitter(specular),
+                "shininess": np.full((n, 1), 5.0)}
+
+    posteriors = [samples(0.4, 0.4, 0.2) for _ in range(8)]
+    kinds = ["metal", "rubber"] * 4
+    misfits = [5.0 if k == "metal" else 1.5 for k in kinds]
+    learnt = rules_for(fitted).with_material_from_posteriors(posteriors, kinds, "weights+saturation+misfit", misfits)
+    (tmp_path / "rule.json").write_text(json.dumps(learnt.material_record()))
+    read = read_material_rule(fitted, tmp_path / "rule.json")
+    query = samples(0.4, 0.4, 0.2)
+    for misfit in (1.2, 6.0):
+        assert read.decide(query, misfit)["p_metal"] == pytest.approx(learnt.decide(query, misfit)["p_metal"])
+    assert read.decide(query, 6.0)["material"] == "metal" and read.decide(query, 1.2)["material"] == "rubber"
+
+    posterior = infer_image(fitted, observed, LikelihoodConfig("p3", sigma=0.3),
+                            SamplerConfig(chains=2, steps=10, burn_in=5, tune_rounds=1, tune_steps=10, block=5,
+                                          init_candidates=16))
+    write_report(posterior, fitted, tmp_path / "out", rules=read)
+    attributes = json.loads((tmp_path / "out" / "estimate.json").read_text())["attributes"]
+    assert attributes["material_rule"] == "weights+saturation+misfit" and attributes["misfit"] > 0
+    assert attributes["material"] == ("metal" if attributes["p_metal"] > 0.5 else "rubber")
+
+    (tmp_path / "bad.json").write_text(json.dumps({"spread": 1}))
+    with pytest.raises(ConfigError, match="not a material rule"):
+        read_material_rule(fitted, tmp_path / "bad.json")

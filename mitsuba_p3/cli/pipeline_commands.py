@@ -95,16 +95,20 @@ def infer(
                                                      "dark set)."),
     renderer: str = typer.Option("mitsuba", help="mitsuba (pure_callback) or jax (native tracer)."),
     seed: int = typer.Option(0, help="Sampler seed."),
+    material_rule: Optional[Path] = typer.Option(
+        None, help="A material-kind rule learnt from train posteriors (RUN/material-rule-p3.json, written by "
+                   "mitsuba-p3 evaluate); default: the rule learnt from the fit's materials."),
 ) -> None:
     """Sample the posterior over an image's object (pose, size, class, material); write it and figures."""
     from ..fit.model import FittedModel
     from ..images import load_observation
     from ..infer.posterior import default_likelihood, infer_image
     from ..files import claim_output_folder
-    from ..infer.report import write_report
+    from ..infer.report import read_material_rule, write_report
 
     fitted = FittedModel(model)
     observed = load_observation(image)
+    rules = read_material_rule(fitted, material_rule) if material_rule else None   # refused before sampling
     claim_output_folder(output, "posterior.nc", "mitsuba-p3 infer")
     config = choose_sampler(sampler, SamplerConfig(chains=chains, steps=steps, burn_in=burn_in,
                                                    tune_rounds=tune_rounds, tune_steps=tune_steps, seed=seed),
@@ -114,7 +118,7 @@ def infer(
     with bar:
         posterior = infer_image(fitted, observed, default_likelihood(fitted, likelihood, sigma, noise), config,
                                 renderer=renderer, progress=track, attrs={"image": str(image)})
-    written = write_report(posterior, fitted, output, renderer=renderer)
+    written = write_report(posterior, fitted, output, renderer=renderer, rules=rules)
     decided = json.loads(Path(written["estimate"]).read_text())["attributes"]
     typer.echo(json.dumps({**written, "attributes": {k: decided[k] for k in ("shape", "material", "size", "colour")}},
                           indent=2))

@@ -217,7 +217,7 @@ class PosteriorMisfits:
 
     def for_rules(self, rules, index: int, posterior: CachedPosterior) -> float | None:
         """The posterior's misfit when ``rules``' material model reads it, else None (no render)."""
-        return self(index, posterior) if rules.material_features.endswith("+misfit") else None
+        return self(index, posterior) if rules.reads_misfit else None
 
 
 # The material rule's features, chosen on train classes, each class held out in turn

@@ -153,6 +153,8 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
             rules_here = (rules_with_train_posteriors(rules, learn_from[0], learn_from[1], likelihood, learn_from[2])
                           if learn_from else rules)
             rows, recovered = attribute_recovery(dataset, cached, rules_here, misfits)
+            # the rule as learnt here, for `mitsuba-p3 infer --material-rule` on new images
+            atomic_json(run_dir / f"material-rule-{likelihood}.json", rules_here.material_record())
             attributes += [{"model": likelihood, **row} for row in rows]
             results[likelihood] = {
                 "accuracy": accuracy, "adi_per_class": per_class, "adi": overall, "attributes": recovered,

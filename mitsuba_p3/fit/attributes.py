@@ -11,7 +11,9 @@ metal sphere?". :class:`AttributeRules` turns posterior samples into those words
   those instead (:meth:`AttributeRules.with_material_from_posteriors`), with the
   saturation of the median reflectance as a fifth feature and the log of the posterior's
   *Phong misfit* (:mod:`mitsuba_p3.infer.misfit`: how much of the object the best Phong
-  render at its pose leaves unexplained) as a sixth;
+  render at its pose leaves unexplained) as a sixth. The learnt rule is plain numbers
+  (:class:`MaterialModel`): ``evaluate`` saves it in its run folder and ``infer
+  --material-rule`` applies it to a new image;
 - **size** (small or large): the protocol size nearest, in log space, to the
   median of the posterior's half-extents;
 - **colour**: the colour name of the fitted train material whose *chromaticity*
@@ -29,7 +31,7 @@ on test images.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -87,7 +89,7 @@ def chromaticity(rgb: np.ndarray) -> np.ndarray:
 class AttributeRules:
     """Decision rules from posterior samples to attribute names (see the module docstring)."""
 
-    material_model: object | None           # a fitted sklearn pipeline, or None (one kind only)
+    material_model: MaterialModel | None     # None: one kind only
     only_kind: str | None                    # the kind when training had just one
     colour_names: list[str]                  # per reference: its colour name
     colour_albedos: np.ndarray               # (references, 3) chromaticities of the train materials
@@ -128,6 +130,32 @@ class AttributeRules:
         return replace(self, material_features=features,
                        material_model=material_classifier(_material_features(rows, features), kinds))
 
+    def material_record(self) -> dict:
+        """The material rule as JSON-ready numbers (:meth:`with_material_record` reads it back)."""
+        return {"format": "mitsuba-p3-material-rule", "features": self.material_features, "kinds": list(KINDS),
+                "only_kind": self.only_kind,
+                "model": None if self.material_model is None else asdict(self.material_model)}
+
+    def with_material_record(self, record: dict) -> "AttributeRules":
+        """The same rules with the material rule of :meth:`material_record` (e.g. one ``evaluate`` learnt
+        from its train posteriors and saved as ``material-rule-LIKELIHOOD.json``)."""
+        from dataclasses import replace
+
+        if not isinstance(record, dict) or record.get("format") != "mitsuba-p3-material-rule":
+            raise ValueError("not a material rule (mitsuba-p3 evaluate writes RUN/material-rule-p3.json)")
+        if record.get("kinds") != list(KINDS) or record.get("features") not in MATERIAL_FEATURES:
+            raise ValueError(f"a material rule for kinds {record.get('kinds')} on features "
+                             f"{record.get('features')!r}; this version reads {list(KINDS)} on {MATERIAL_FEATURES}")
+        model = record.get("model")
+        return replace(self, material_features=record["features"], only_kind=record.get("only_kind"),
+                       material_model=None if model is None else MaterialModel(
+                           tuple(model["mean"]), tuple(model["scale"]), tuple(model["coef"]), float(model["intercept"])))
+
+    @property
+    def reads_misfit(self) -> bool:
+        """Whether :meth:`decide` needs the posterior's Phong misfit."""
+        return self.material_model is not None and self.material_features.endswith("+misfit")
+
     def decide(self, samples: dict, misfit: float | None = None) -> dict:
         """Attribute names (and the shape's posterior probabilities) from posterior samples:
         ``class`` (n,), ``scale`` (n, 3), ``colour`` (n, 3), ``ambient``/``diffuse``/``specular``/``shininess``
@@ -155,14 +183,34 @@ def _medians(samples: dict) -> dict:
     return medians
 
 
-def material_classifier(features: np.ndarray, kinds: list[str]):
-    """Logistic regression (standardised features) from Phong-weight features to metal vs rubber."""
+@dataclass(frozen=True)
+class MaterialModel:
+    """A fitted logistic regression on standardised features: p(metal) = sigmoid(w . (x - mean) / scale + b).
+    Plain numbers, so a rule learnt in one command (``evaluate``) can be saved and read by another
+    (``infer --material-rule``)."""
+
+    mean: tuple
+    scale: tuple
+    coef: tuple
+    intercept: float
+
+    def predict_proba(self, features: np.ndarray) -> np.ndarray:
+        """(n, 2) probabilities of rubber and metal, as sklearn's classifiers give them."""
+        z = (np.asarray(features, np.float64) - np.asarray(self.mean)) / np.asarray(self.scale)
+        metal = 1.0 / (1.0 + np.exp(-(z @ np.asarray(self.coef) + self.intercept)))
+        return np.stack([1.0 - metal, metal], axis=1)
+
+
+def material_classifier(features: np.ndarray, kinds: list[str]) -> MaterialModel:
+    """Logistic regression (standardised features, sklearn's L2 penalty C = 1) from Phong-weight
+    features to metal vs rubber."""
     from sklearn.linear_model import LogisticRegression
-    from sklearn.pipeline import make_pipeline
     from sklearn.preprocessing import StandardScaler
 
-    return make_pipeline(StandardScaler(), LogisticRegression(C=1.0)).fit(
-        features, np.array([KINDS.index(k) for k in kinds]))
+    scaler = StandardScaler().fit(features)
+    fitted = LogisticRegression(C=1.0).fit(scaler.transform(features), np.array([KINDS.index(k) for k in kinds]))
+    return MaterialModel(tuple(scaler.mean_.tolist()), tuple(scaler.scale_.tolist()),
+                         tuple(fitted.coef_[0].tolist()), float(fitted.intercept_[0]))
 
 
 def rules_for(fitted, dataset=None) -> AttributeRules:

@@ -8,7 +8,7 @@ import numpy as np
 
 from .. import plots
 from ..files import atomic_json
-from ..fit.attributes import rules_for
+from ..fit.attributes import AttributeRules, rules_for
 from ..fit.model import FittedModel
 from ..space import render_params
 from .posterior import Posterior
@@ -27,9 +27,40 @@ def draw_params(posterior: Posterior, indices: np.ndarray) -> dict[str, np.ndarr
     return render_params({name: posterior.draws(name)[indices] for name in names})
 
 
+def read_material_rule(fitted: FittedModel, path: str | Path) -> AttributeRules:
+    """The fit's attribute rules with the material rule saved at ``path`` (``mitsuba-p3 evaluate`` writes
+    ``RUN/material-rule-LIKELIHOOD.json``, learnt from its train posteriors). A rule that reads the
+    Phong misfit needs the model's fitted noise model, the misfit's unit."""
+    from ..errors import ConfigError
+
+    try:
+        rules = rules_for(fitted).with_material_record(json.loads(Path(path).read_text()))
+    except (OSError, ValueError) as error:
+        raise ConfigError(f"{path}: {error}") from None
+    if rules.reads_misfit and not (fitted.root / "noise.json").exists():
+        raise ConfigError(f"{path} reads the Phong misfit, which needs {fitted.root}'s noise stage; run "
+                          f"mitsuba-p3 fit DATASET --out {fitted.root} --stages noise")
+    return rules
+
+
+def posterior_misfit(posterior: Posterior, fitted: FittedModel, observed: np.ndarray) -> float:
+    """The Phong misfit (:func:`~mitsuba_p3.infer.misfit.phong_misfit`) at the posterior's pose estimate."""
+    from ..render import make_renderer
+    from .misfit import phong_misfit
+
+    estimate = posterior.estimate()
+    pose = {"shift": np.asarray(estimate["shift"], np.float64), "theta": float(estimate["theta"]),
+            "scale": np.median(posterior.draws("scale").reshape(-1, 3), axis=0), "kappa": int(estimate["kappa"])}
+    noise = fitted.noise
+    renderer = make_renderer(fitted.scene(), "mitsuba", height=observed.shape[0], width=observed.shape[1],
+                             shadows=noise.shadows)
+    return phong_misfit(renderer, observed, pose, noise.gaussian_sigma or noise.sigma)
+
+
 def write_report(posterior: Posterior, fitted: FittedModel, out: str | Path, renderer: str = "mitsuba",
-                 samples: int = 6, truth: dict | None = None) -> dict[str, str]:
-    """posterior.nc, summary.csv, estimate.json and the figures; returns what was written."""
+                 samples: int = 6, truth: dict | None = None, rules: AttributeRules | None = None) -> dict[str, str]:
+    """posterior.nc, summary.csv, estimate.json and the figures; returns what was written. The
+    attributes are named by ``rules`` (:func:`read_material_rule`), or by the fit's."""
     from ..render import make_renderer
 
     out = Path(out)
@@ -43,12 +74,16 @@ def write_report(posterior: Posterior, fitted: FittedModel, out: str | Path, ren
     attrs = dict(posterior.idata.posterior.attrs)
     estimate_file = out / "estimate.json"
     draws = {name: posterior.draws(name) for name in ("scale", "colour", "ambient", "diffuse", "specular", "shininess")}
-    attributes = rules_for(fitted).decide({**draws, "class": posterior.draws("kappa")})
+    observed = np.asarray(posterior.idata.observed_data["image"].values, np.float32)
+    rules = rules or rules_for(fitted)
+    misfit = posterior_misfit(posterior, fitted, observed) if rules.reads_misfit else None
+    attributes = {**rules.decide({**draws, "class": posterior.draws("kappa")}, misfit),
+                  "material_rule": rules.material_features if rules.material_model is not None else "one kind",
+                  **({"misfit": misfit} if misfit is not None else {})}
     atomic_json(estimate_file, {"estimate": estimate, "attributes": attributes, "diagnostics": diagnostics,
                                 "seconds": attrs.get("seconds"), "acceptance": attrs.get("acceptance")})
     written["estimate"] = str(estimate_file)
 
-    observed = np.asarray(posterior.idata.observed_data["image"].values, np.float32)
     height, width = observed.shape[:2]
     # the renders the likelihood compared: with hard shadows when its noise model had them
     noise = attrs.get("noise", "{}")
