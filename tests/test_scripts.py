@@ -162,3 +162,20 @@ def test_probe_resolution_reads_only_the_rendered_train_images(tmp_path):
     assert [r["file"] for r in kept] == ["train/c/0.png", "train/c/1.png"]
     assert (view / "train" / "c" / "1.png").read_bytes() == b"png" and not (view / "test").exists()
     assert (view / "scene.xml").is_file()
+
+
+def test_object_box_frames_what_the_object_changes():
+    """The posterior figure's zoom: a box with the image's aspect around the pixels where the render
+    differs from the empty floor, inside the image; none when nothing differs or the object is most
+    of the image."""
+    from mitsuba_p3.plots import object_box
+
+    empty = np.full((120, 160, 3), 0.4)
+    render = empty.copy()
+    render[50:58, 150:158] = 0.9                 # a small object near the right edge
+    top, left, height, width = object_box(render, empty)
+    assert 0 <= top <= 50 and top + height >= 58 and 0 <= left <= 150 and left + width >= 158
+    assert left + width <= 160 and abs(width / height - 160 / 120) < 0.05 and height >= 30
+    assert object_box(empty, empty) is None
+    render[10:110, 10:150] = 0.9
+    assert object_box(render, empty) is None
