@@ -200,19 +200,15 @@ class PosteriorMisfits:
         self._values: dict[tuple, float] = {}
 
     def __call__(self, index: int, posterior: CachedPosterior) -> float:
-        from ..infer.misfit import phong_misfit
-        from ..render import make_renderer
+        from ..infer.misfit import misfit_renderer, model_misfit
 
         pose = posterior.pose
         key = (index, *pose["shift"], pose["theta"], *pose["scale"], pose["kappa"])
         if key not in self._values:
-            noise = self.fitted.noise
             if self._renderer is None:
-                height, width = self.dataset.resolution
-                self._renderer = make_renderer(self.fitted.scene(), "mitsuba", height=height, width=width,
-                                               shadows=noise.shadows)
-            self._values[key] = phong_misfit(self._renderer, self.dataset.image(self.dataset.shots[index]), pose,
-                                             noise.gaussian_sigma or noise.sigma)
+                self._renderer = misfit_renderer(self.fitted, *self.dataset.resolution)
+            self._values[key] = model_misfit(self.fitted, self.dataset.image(self.dataset.shots[index]), pose,
+                                             self._renderer)
         return self._values[key]
 
     def for_rules(self, rules, index: int, posterior: CachedPosterior) -> float | None:

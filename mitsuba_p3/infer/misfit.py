@@ -64,3 +64,19 @@ def phong_misfit(renderer, observed: np.ndarray, pose: dict, noise_rms: float) -
         _, residual = nnls(design.reshape(3 * pixels, 7), target)
         best = min(best, residual ** 2)
     return float(np.sqrt(best / (3 * pixels)) / noise_rms)
+
+
+def model_misfit(fitted, observed: np.ndarray, pose: dict, renderer=None) -> float:
+    """:func:`phong_misfit` under a fitted model: its scene rendered with the shadows of its noise
+    model, in units of that model's residual RMS. Pass ``renderer`` (from an earlier call's
+    ``misfit_renderer``) to score many posteriors of one data set without building it again."""
+    noise = fitted.noise
+    renderer = renderer or misfit_renderer(fitted, *np.asarray(observed).shape[:2])
+    return phong_misfit(renderer, observed, pose, noise.gaussian_sigma or noise.sigma)
+
+
+def misfit_renderer(fitted, height: int, width: int):
+    """The renderer :func:`model_misfit` uses for images of ``height`` x ``width``."""
+    from ..render import make_renderer
+
+    return make_renderer(fitted.scene(), "mitsuba", height=height, width=width, shadows=fitted.noise.shadows)

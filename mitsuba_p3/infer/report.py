@@ -45,16 +45,12 @@ def read_material_rule(fitted: FittedModel, path: str | Path) -> AttributeRules:
 
 def posterior_misfit(posterior: Posterior, fitted: FittedModel, observed: np.ndarray) -> float:
     """The Phong misfit (:func:`~mitsuba_p3.infer.misfit.phong_misfit`) at the posterior's pose estimate."""
-    from ..render import make_renderer
-    from .misfit import phong_misfit
+    from .misfit import model_misfit
 
     estimate = posterior.estimate()
     pose = {"shift": np.asarray(estimate["shift"], np.float64), "theta": float(estimate["theta"]),
             "scale": np.median(posterior.draws("scale").reshape(-1, 3), axis=0), "kappa": int(estimate["kappa"])}
-    noise = fitted.noise
-    renderer = make_renderer(fitted.scene(), "mitsuba", height=observed.shape[0], width=observed.shape[1],
-                             shadows=noise.shadows)
-    return phong_misfit(renderer, observed, pose, noise.gaussian_sigma or noise.sigma)
+    return model_misfit(fitted, observed, pose)
 
 
 def write_report(posterior: Posterior, fitted: FittedModel, out: str | Path, renderer: str = "mitsuba",
