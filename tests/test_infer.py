@@ -392,6 +392,30 @@ def test_pooled_evidence_is_the_mean_of_each_hypothesis_runs():
     assert pooled_evidence(rows, 4)[3] == -np.inf
 
 
+def test_decision_waits_while_the_runs_disagree_more_than_the_margin():
+    """fsclvr's large gray metal cube (seed 0): the cylinder's two runs estimated 49.7 and 76.7, the
+    cube's 42.8 and 47.7. Pooled, the cylinder has weight 1.0; but a cube run at its best (47.7) against
+    the cylinder's worse run (49.7) keeps weight 0.12, so the answer is open and both stay in contention.
+    Runs that agree decide; with one run per hypothesis the rule is the plain one on pooled weights."""
+    from mitsuba_p3.infer.smc import Rows, SMCState, decision, island_range, pooled_evidence
+
+    log_prior = np.log(np.full(3, 1 / 3))
+    rows = Rows(np.array([0, 1, 2, 0, 1, 2]), SMCState(None, None, None),
+                np.array([-58.8, 42.8, 49.7, -58.8, 47.7, 76.7]), 1, [])
+    low, high = island_range(rows, 3)
+    np.testing.assert_allclose(low, [-58.8, 42.8, 49.7]) and np.testing.assert_allclose(high, [-58.8, 47.7, 76.7])
+    decided, contenders = decision(log_prior, pooled_evidence(rows, 3), low, high, 0.99)
+    assert not decided and list(contenders) == [1, 2]
+    agreeing = np.array([-58.8, 42.8, 75.9, -58.8, 47.7, 76.7])
+    rows = rows._replace(log_evidence=agreeing)
+    decided, contenders = decision(log_prior, pooled_evidence(rows, 3), *island_range(rows, 3), 0.99)
+    assert decided and list(contenders) == [2]
+    one = np.array([40.0, 44.0, 43.0])                  # one run each: the pooled weights decide
+    weights = np.exp(one - np.logaddexp.reduce(one))
+    decided, contenders = decision(log_prior, one, one, one, 0.99)
+    assert not decided and list(contenders) == list(np.flatnonzero(weights >= 0.01 / 3))
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("kinds, islands, rounds", [(False, 1, 1), (True, 1, 1), (False, 2, 3)])
 def test_smc_runs_every_hypothesis_and_keeps_their_evidence(fitted, tmp_path, kinds, islands, rounds):
