@@ -403,7 +403,8 @@ def test_decision_waits_while_the_runs_disagree_more_than_the_margin():
     rows = Rows(np.array([0, 1, 2, 0, 1, 2]), SMCState(None, None, None),
                 np.array([-58.8, 42.8, 49.7, -58.8, 47.7, 76.7]), 1, [])
     low, high = island_range(rows, 3)
-    np.testing.assert_allclose(low, [-58.8, 42.8, 49.7]) and np.testing.assert_allclose(high, [-58.8, 47.7, 76.7])
+    np.testing.assert_allclose(low, [-58.8, 42.8, 49.7])
+    np.testing.assert_allclose(high, [-58.8, 47.7, 76.7])
     decided, contenders = decision(log_prior, pooled_evidence(rows, 3), low, high, 0.99)
     assert not decided and list(contenders) == [1, 2]
     agreeing = np.array([-58.8, 42.8, 75.9, -58.8, 47.7, 76.7])
