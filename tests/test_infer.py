@@ -296,6 +296,28 @@ def test_tempering_increment_keeps_the_target_ess():
     assert next_increment(np.zeros(64), 0.3, 0.5) == 0.3      # a flat likelihood: the whole way at once
 
 
+def test_footprint_of_a_noisy_image_is_the_object_not_the_noise():
+    """An image noisier than the floor the threshold was fitted on (an SBC draw at the likelihood's
+    effective scale) is averaged before the test, so its footprint is the object; a clean image
+    gets the plain per-pixel test."""
+    from mitsuba_p3.infer.footprint import footprint_mask
+
+    rng = np.random.default_rng(0)
+    empty = np.full((60, 80, 3), 0.5, np.float32)
+    clean = empty.copy()
+    clean[20:36, 30:46] = 0.9                                 # a 16 x 16 object, contrast 0.4
+    threshold = 0.0857                                        # fsclvr's fitted footprint threshold
+    plain = np.max(np.abs(clean - empty), axis=-1) > threshold
+    np.testing.assert_array_equal(footprint_mask(clean + 0.005 * rng.standard_normal(clean.shape), empty,
+                                                 threshold), plain)
+    noisy = clean + 0.2 * rng.standard_normal(clean.shape).astype(np.float32)
+    assert (np.max(np.abs(noisy - empty), axis=-1) > threshold).mean() > 0.9   # the plain test: all footprint
+    mask = footprint_mask(noisy, empty, threshold)
+    assert mask[24:32, 34:42].all()                           # the object's core is found
+    far = np.ones_like(plain)
+    far[12:44, 22:54] = False                                 # floor beyond the averaging's reach of the object
+    assert mask[far].mean() < 0.01                            # is hardly ever footprint
+
 def _proposal(bound=0.14):
     from mitsuba_p3.infer.footprint import FootprintProposal
     from mitsuba_p3.render.jax_tracer import camera_rays
