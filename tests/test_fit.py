@@ -123,6 +123,18 @@ def test_vgg_first_layer_matches_a_hand_computation():
     assert shapes[0] == (1, 32, 32, 64) and shapes[2] == (1, 16, 16, 128) and shapes[-1] == (1, 2, 2, 512)
 
 
+def test_selected_channels_equal_the_full_convolution():
+    """The selected conv1_1 channels (a small kernel, summed by hand) equal XLA's convolution of the
+    whole layer at those channels, borders included."""
+    from mitsuba_p3.fit.features import Channel, selected_features
+
+    image = np.random.default_rng(0).uniform(size=(2, 12, 16, 3)).astype(np.float32)
+    full = np.asarray(vgg_features(image, depth=1)[0])
+    chosen = [Channel("conv1_1", 50, 0.0), Channel("conv1_1", 7, 0.0), Channel("conv1_1", 61, 0.0)]
+    for channel, got in zip(chosen, selected_features(image, chosen)):
+        np.testing.assert_allclose(np.asarray(got), full[..., channel.channel], rtol=1e-4, atol=1e-4)
+
+
 def test_channels_are_ranked_across_layers():
     losses = {name: np.full(4, 10.0 + i) for i, name in enumerate(LAYERS)}
     losses["conv3_2"][2] = 0.1

@@ -72,7 +72,10 @@ def vgg_features(images, depth: int = len(LAYERS), weights=None) -> list:
 
 def _conv3x3(x, kernel):
     """'SAME' 3x3 convolution, NHWC x HWIO. Tiny ones (the selected channels of conv1_1:
-    3 in, 3 out) run as 27 fused multiply-adds, 7x faster than XLA CPU's convolution."""
+    3 in, 3 out) run as 27 multiply-adds per output channel over channels-first planes, so the
+    innermost axis is the image's width: 7x faster than XLA CPU's convolution in a walk, and
+    4x faster than the same sums over channels-last pixels inside the material move, where XLA
+    vectorised those over the 3 channels (1.8 s against 0.42 s per move of 384 particles)."""
     import jax
     import jax.numpy as jnp
 
@@ -80,13 +83,16 @@ def _conv3x3(x, kernel):
     if c_in * c_out > 64:
         return jax.lax.conv_general_dilated(x, kernel, (1, 1), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC"))
     height, width = x.shape[-3], x.shape[-2]
-    padded = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)))
-    out = 0.0
-    for dy in range(3):
-        for dx in range(3):
-            for c in range(c_in):
-                out = out + padded[:, dy:dy + height, dx:dx + width, c, None] * kernel[dy, dx, c]
-    return out
+    planes = jnp.pad(jnp.moveaxis(x, -1, 1), ((0, 0), (0, 0), (1, 1), (1, 1)))     # (B, C, H + 2, W + 2)
+    outputs = []
+    for o in range(c_out):
+        out = 0.0
+        for dy in range(3):
+            for dx in range(3):
+                for c in range(c_in):
+                    out = out + planes[:, c, dy:dy + height, dx:dx + width] * kernel[dy, dx, c, o]
+        outputs.append(out)
+    return jnp.stack(outputs, axis=-1)
 
 
 @dataclass(frozen=True)
