@@ -35,10 +35,10 @@ DEFENSIVE_WEIGHT = 0.5      # the prior's share of the first step's proposal
 NOISE_QUANTILE = 3.59
 
 
-def image_noise(observed: np.ndarray, empty: np.ndarray) -> float:
-    """The image's own pixel noise against the empty floor: 1.4826 x the median |observed - empty| over
-    every pixel and channel (the MAD; the floor fills most of the image, so the object barely moves it)."""
-    return 1.4826 * float(np.median(np.abs(np.asarray(observed, np.float32) - np.asarray(empty, np.float32))))
+def image_noise(difference: np.ndarray) -> float:
+    """The image's own pixel noise from its difference to the empty floor: 1.4826 x the median |difference|
+    over every pixel and channel (the MAD; the floor fills most of the image, so the object barely moves it)."""
+    return 1.4826 * float(np.median(np.abs(difference)))
 
 
 def footprint_mask(observed: np.ndarray, empty: np.ndarray, threshold: float) -> np.ndarray:
@@ -56,7 +56,7 @@ def footprint_mask(observed: np.ndarray, empty: np.ndarray, threshold: float) ->
     from scipy import ndimage
 
     difference = np.asarray(observed, np.float32) - np.asarray(empty, np.float32)
-    noise = image_noise(observed, empty)
+    noise = image_noise(difference)
     width = int(np.ceil(NOISE_QUANTILE * noise / threshold))
     if width <= 1:
         return np.max(np.abs(difference), axis=-1) > threshold

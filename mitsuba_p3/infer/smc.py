@@ -411,24 +411,20 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
     return Rows(np.asarray(index), SMCState(z, loglik, logprior), log_evidence, steps, acceptance_history)
 
 
+def _per_hypothesis(rows: Rows, hypotheses: int, reduce: Callable[[np.ndarray], float]) -> np.ndarray:
+    """``reduce`` of each hypothesis's rows' log evidence estimates (-inf: no row)."""
+    return np.array([reduce(mine) if len(mine := rows.log_evidence[rows.index == h]) else -np.inf
+                     for h in range(hypotheses)])
+
+
 def pooled_evidence(rows: Rows, hypotheses: int) -> np.ndarray:
     """log Z_h per hypothesis: the log of the mean of its rows' unbiased estimates (-inf: no row)."""
-    pooled = np.full(hypotheses, -np.inf)
-    for h in range(hypotheses):
-        mine = rows.log_evidence[rows.index == h]
-        if len(mine):
-            pooled[h] = np.logaddexp.reduce(mine) - np.log(len(mine))
-    return pooled
+    return _per_hypothesis(rows, hypotheses, lambda mine: np.logaddexp.reduce(mine) - np.log(len(mine)))
 
 
 def island_range(rows: Rows, hypotheses: int) -> tuple[np.ndarray, np.ndarray]:
     """Per hypothesis the lowest and the highest log evidence any of its runs estimated (-inf: no run)."""
-    low, high = np.full(hypotheses, -np.inf), np.full(hypotheses, -np.inf)
-    for h in range(hypotheses):
-        mine = rows.log_evidence[rows.index == h]
-        if len(mine):
-            low[h], high[h] = mine.min(), mine.max()
-    return low, high
+    return _per_hypothesis(rows, hypotheses, np.min), _per_hypothesis(rows, hypotheses, np.max)
 
 
 def decision(log_prior: np.ndarray, pooled: np.ndarray, low: np.ndarray, high: np.ndarray,
