@@ -314,3 +314,35 @@ def test_reproduce_writes_one_posterior_figure_per_benchmark_once(bench, tmp_pat
     made = (example / "posterior.nc").stat().st_mtime_ns
     posterior_figure(bench / "data", bench / "model", tmp_path / "run", config, figure)
     assert (example / "posterior.nc").stat().st_mtime_ns == made
+
+
+@pytest.mark.slow
+def test_reproduce_logs_its_time_and_resumes_without_sampling_again(bench, tmp_path, monkeypatch):
+    """``reproduce`` from a data folder (benchmark + fitted model): the paper's tables, one timing record per
+    benchmark whose parts add up to the call's wall time, and a second call that samples nothing again."""
+    import mitsuba_p3.benchmarks.generate as generate_module
+    from mitsuba_p3.reproduce import ReproduceConfig, reproduce
+
+    # the fixture's benchmark is a small one of its own seed: nothing to generate
+    monkeypatch.setattr(generate_module, "generate", lambda *args, **kwargs: None)
+
+    data = tmp_path / "data"
+    (data / "models").mkdir(parents=True)
+    (data / "fsclvr").symlink_to(bench / "data")
+    (data / "models" / "fsclvr").symlink_to(bench / "model")
+    config = ReproduceConfig(benchmarks=("fsclvr",), evaluation=EvaluationConfig(
+        likelihoods=("p3",), noise="paper", sampler=TINY, episodes=5))
+    start = time.perf_counter()
+    minutes = reproduce(data, tmp_path / "out", config)
+    wall = (time.perf_counter() - start) / 60
+    log = json.loads((tmp_path / "out" / "timing.json").read_text())
+    assert len(log) == 1 and set(minutes) == {"fsclvr"}
+    parts = log[0]["generate_and_fit_minutes"] + log[0]["minutes"] + log[0]["figure_and_tables_minutes"]
+    assert 0 < parts <= wall + 0.01 and parts > 0.9 * wall
+    for name in ("accuracy.md", "accuracy.csv", "adi.md", "figures/posterior-fsclvr.png"):
+        assert (tmp_path / "out" / name).is_file(), name
+    posteriors = {p: p.stat().st_mtime_ns for p in (tmp_path / "out" / "runs").rglob("*.npz")}
+    assert posteriors
+    reproduce(data, tmp_path / "out", config)
+    assert {p: p.stat().st_mtime_ns for p in posteriors} == posteriors
+    assert len(json.loads((tmp_path / "out" / "timing.json").read_text())) == 2

@@ -179,3 +179,34 @@ def test_object_box_frames_what_the_object_changes():
     assert object_box(empty, empty) is None
     render[10:110, 10:150] = 0.9
     assert object_box(render, empty) is None
+
+
+def test_compare_reproductions_reads_two_output_folders(tmp_path, capsys):
+    """scripts/compare_reproductions.py: the cells both folders hold, their difference in points, the
+    share of images whose decided attributes agree, both ADIs; a folder without tables is refused."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "compare_reproductions.py"
+    spec = importlib.util.spec_from_file_location("compare_reproductions", path)
+    compare = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(compare)
+    head = "benchmark,model,sigma,distance,setting,accuracy,half_width_95,ece,paper\n"
+    attributes_head = "model,query,shape_decided,material_decided,size_decided,colour_decided\n"
+    for name, accuracy, shape in (("a", 0.90, "cube"), ("b", 0.88, "sphere")):
+        folder = tmp_path / name
+        (folder / "runs" / "room-fitted").mkdir(parents=True)
+        (folder / "accuracy.csv").write_text(head + f"room,p3,fitted,paper,5-way 1-shot,{accuracy},0.03,0.1,0.92\n"
+                                             + "room,maml,,,5-way 1-shot,0.5,0.1,,\n")
+        (folder / "adi.csv").write_text("benchmark,model,sigma,mean_adi_m\nroom,p3,fitted,0.01\n")
+        (folder / "runs" / "room-fitted" / "attributes.csv").write_text(
+            attributes_head + f"p3,1,{shape},metal,large,red\np3,2,cube,metal,large,red\n")
+    compare.main([str(tmp_path / "a"), str(tmp_path / "b")])
+    printed = capsys.readouterr().out
+    assert "| room | p3 | fitted | paper | 5-way 1-shot | 90.0 | 88.0 | -2.0 | 3.0 |" in printed
+    assert "maml" not in printed
+    assert "| room-fitted | p3 | 2 | 50.0% | 100.0% | 100.0% | 100.0% |" in printed
+    assert "| room | p3 | fitted | 0.0100 | 0.0100 |" in printed
+    (tmp_path / "c").mkdir()
+    with pytest.raises(SystemExit):
+        compare.main([str(tmp_path / "a"), str(tmp_path / "c")])
