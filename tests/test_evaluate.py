@@ -195,6 +195,56 @@ def test_a_run_with_tuple_settings_resumes(bench, tmp_path):
         check_run(tmp_path, dataset, bench / "model", replace(config, sampler=SMCConfig(particles=4, window=(56, 72))))
 
 
+def test_the_bridge_setting_guards_only_np3_posteriors(bench, tmp_path):
+    """The SMC's bridge decides how NP3's posteriors are made and nothing of P3's: a folder made before
+    the setting existed (no 'bridge' in its record: NP3 tempered from the prior) still serves P3 runs;
+    an NP3 run with the bridge on is refused while it holds NP3 posteriors, and takes the folder over
+    once it holds none."""
+    from mitsuba_p3.infer.smc import SMCConfig
+
+    dataset = load_dataset(bench / "data")
+    old = EvaluationConfig(likelihoods=("p3", "np3"), noise="fitted", sampler=SMCConfig(particles=4, bridge=False))
+    check_run(tmp_path, dataset, bench / "model", old)
+    record = json.loads((tmp_path / "run.json").read_text())
+    del record["sampler"]["bridge"]
+    (tmp_path / "run.json").write_text(json.dumps(record))
+    for likelihood in ("p3", "np3"):
+        (tmp_path / "posteriors" / likelihood).mkdir(parents=True)
+        (tmp_path / "posteriors" / likelihood / "00000.npz").write_bytes(b"")
+    check_run(tmp_path, dataset, bench / "model", old)                       # read as bridge off: the same run
+    new = replace(old, sampler=SMCConfig(particles=4))
+    check_run(tmp_path, dataset, bench / "model", replace(new, likelihoods=("p3",)))    # P3 alone: unaffected
+    with pytest.raises(EvaluationError, match="bridge off"):
+        check_run(tmp_path, dataset, bench / "model", new)
+    with pytest.raises(EvaluationError, match="other settings"):              # anything else still refuses
+        check_run(tmp_path, dataset, bench / "model", replace(old, sampler=SMCConfig(particles=5, bridge=False)))
+    (tmp_path / "posteriors" / "np3" / "00000.npz").unlink()
+    check_run(tmp_path, dataset, bench / "model", new)
+    assert json.loads((tmp_path / "run.json").read_text())["sampler"]["bridge"] is True
+
+
+def test_a_bridged_np3_job_starts_from_p3s_cached_particles(bench, tmp_path):
+    """P3's job caches its SMC particles; NP3's job of the same image starts from them, and the result
+    is the posterior NP3 reaches when it runs P3 itself (the sampler is seeded)."""
+    from mitsuba_p3.evaluate.jobs import posterior_job
+    from mitsuba_p3.infer.smc import SMCConfig
+
+    dataset = load_dataset(bench / "data")
+    shot = dataset.split("test")[0].index
+    config = EvaluationConfig(likelihoods=("p3", "np3"), noise="fitted",
+                              sampler=SMCConfig(particles=4, mcmc_steps=1, final_steps=1, draws=40))
+    compute_posteriors(dataset, bench / "model", tmp_path / "both", config, shots=[shot])
+    with np.load(posterior_path(tmp_path / "both", "p3", shot)) as f:
+        assert f["particles_position"].shape[1:] == (4, 15) and np.all(np.isfinite(f["particles_log_evidence"]))
+    alone = tmp_path / "alone" / "posteriors" / "np3" / f"{shot:05d}.npz"
+    alone.parent.mkdir(parents=True)
+    posterior_job(str(bench / "data"), str(bench / "model"), shot, "np3", config, str(alone))
+    with np.load(alone) as a, np.load(posterior_path(tmp_path / "both", "np3", shot)) as b:
+        np.testing.assert_array_equal(a["sample_shift"], b["sample_shift"])
+        np.testing.assert_array_equal(a["log_evidence"], b["log_evidence"])
+        assert "particles_position" not in b.files                        # only P3's runs are started from
+
+
 def test_a_model_or_data_set_changed_in_place_is_noticed(bench, tmp_path):
     """A model fitted again into the same folder (or labels rewritten) no longer matches the cached
     posteriors: the run refuses it rather than reuse them; and fit refuses to mix a second data set into

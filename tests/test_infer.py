@@ -478,6 +478,60 @@ def test_smc_runs_every_hypothesis_and_keeps_their_evidence(fitted, tmp_path, ki
     assert json.loads(saved.idata.posterior.attrs["hypotheses"]) == hypotheses
 
 
+def test_bridge_from_p3_adds_the_neural_terms_evidence(fitted):
+    """The bridge from P3's particles to NP3 (:func:`mitsuba_p3.infer.smc.bridge`): with a neural weight
+    of zero it changes no evidence and takes one step; with the real weight and one step (a low ESS
+    target), each run's log evidence grows by exactly log mean exp(neural term) over P3's final
+    particles, Z_NP3 = Z_P3 E_P3[p_neural], the neural term computed here from the two likelihoods."""
+    import jax
+    from dataclasses import replace
+
+    from mitsuba_p3.infer.smc import SMCConfig, bridge, sample_smc
+
+    observed = make_renderer_image(fitted)
+    config = SMCConfig(particles=8, mcmc_steps=1, final_steps=1, draws=40, window=None, target_ess=1e-6)
+    p3, np3 = (LikelihoodConfig(kind, sigma=0.03, power=0.05, shadows=True) for kind in ("p3", "np3"))
+    colour, neural = PosteriorModel(fitted, observed, p3), PosteriorModel(fitted, observed, np3)
+    start = sample_smc(colour.core, colour.observation, config).particles.rows
+    z = start.state.position
+    difference = np.stack([np.asarray(jax.vmap(neural.log_likelihood)(row)) - np.asarray(jax.vmap(colour.log_likelihood)(row))
+                           for row in z])
+    assert np.all(difference < 0) and np.ptp(difference) > 0          # the neural term: a distance, and it varies
+    expected = start.log_evidence + np.logaddexp.reduce(difference, axis=1) - np.log(z.shape[1])
+    rows = bridge(neural.core, neural.observation, start, config, np.random.default_rng(0), jax.random.PRNGKey(0))
+    assert rows.temperatures == start.temperatures + 1
+    np.testing.assert_allclose(rows.log_evidence, expected, rtol=0, atol=1e-3)
+    # the final particles are NP3's: their log likelihoods are NP3's own
+    final = np.stack([np.asarray(jax.vmap(neural.log_likelihood)(row)) for row in rows.state.position])
+    np.testing.assert_allclose(rows.state.loglikelihood, final, rtol=1e-4, atol=1e-2)
+    # no neural term: nothing to add
+    off = PosteriorModel(fitted, observed, replace(np3, neural_weight=0.0))
+    unchanged = bridge(off.core, off.observation, start, replace(config, target_ess=0.5), np.random.default_rng(0),
+                       jax.random.PRNGKey(0))
+    assert unchanged.temperatures == start.temperatures + 1
+    np.testing.assert_array_equal(unchanged.log_evidence, start.log_evidence)
+
+
+@pytest.mark.slow
+def test_np3_under_smc_is_p3_then_the_bridge(fitted):
+    """infer_image's NP3 SMC run is P3's run followed by the bridge: started from P3's particles by
+    hand, it is the same posterior; --no-bridge tempers NP3 from the prior instead (another run)."""
+    from dataclasses import replace
+
+    from mitsuba_p3.infer.smc import SMCConfig
+
+    observed = make_renderer_image(fitted)
+    config = SMCConfig(particles=8, mcmc_steps=1, final_steps=1, draws=40, window=None)
+    p3, np3 = (LikelihoodConfig(kind, sigma=0.03, power=0.05, shadows=True) for kind in ("p3", "np3"))
+    by_hand = infer_image(fitted, observed, np3, config, start=infer_image(fitted, observed, p3, config).particles)
+    bridged = infer_image(fitted, observed, np3, config)
+    np.testing.assert_array_equal(bridged.draws("z"), by_hand.draws("z"))
+    from_prior = infer_image(fitted, observed, np3, replace(config, bridge=False))
+    assert not np.array_equal(from_prior.draws("z"), bridged.draws("z"))
+    with pytest.raises(MitsubaP3Error, match="only an SMC run"):
+        infer_image(fitted, observed, np3, SamplerConfig(chains=2, steps=4), start=bridged.particles)
+
+
 def make_renderer_image(fitted):
     from mitsuba_p3.render import make_renderer
 

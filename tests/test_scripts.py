@@ -210,3 +210,20 @@ def test_compare_reproductions_reads_two_output_folders(tmp_path, capsys):
     (tmp_path / "c").mkdir()
     with pytest.raises(SystemExit):
         compare.main([str(tmp_path / "a"), str(tmp_path / "c")])
+
+
+def test_select_np3_start_takes_train_images_round_robin_over_classes():
+    """scripts/select_np3_start.py's images: train shots only, first shots of every class before any
+    second shot, as many as asked (or all there are)."""
+    import importlib.util
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "select_np3_start.py"
+    spec = importlib.util.spec_from_file_location("select_np3_start", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    shots = [SimpleNamespace(index=i, cls=c, split="train") for i, c in enumerate("aabbbc")]
+    dataset = SimpleNamespace(split=lambda name: shots if name == "train" else [])
+    assert [s.index for s in script.train_images(dataset, 4)] == [0, 2, 5, 1]
+    assert sorted(s.index for s in script.train_images(dataset, 100)) == list(range(6))

@@ -26,8 +26,8 @@ SAMPLER_HELP_TEXT = ("auto (smc under a fitted noise model, mh under the paper's
                      "options apply).")
 
 
-def choose_sampler(name: str, mh: SamplerConfig, particles: int, noise: str, sigma: float | None
-                   ) -> SamplerConfig | SMCConfig:
+def choose_sampler(name: str, mh: SamplerConfig, particles: int, noise: str, sigma: float | None,
+                   bridge: bool = SMCConfig.bridge) -> SamplerConfig | SMCConfig:
     """The sampler a command's --sampler names: the MH settings given, or SMC with their seed; ``auto``
     is SMC under a fitted noise model and MH under the paper's (the sampler each was measured with)."""
     from ..errors import ConfigError
@@ -37,7 +37,7 @@ def choose_sampler(name: str, mh: SamplerConfig, particles: int, noise: str, sig
     if name == "mh":
         return mh
     if name == "smc":
-        return SMCConfig(particles=particles, seed=mh.seed)
+        return SMCConfig(particles=particles, seed=mh.seed, bridge=bridge)
     raise ConfigError(f"unknown sampler {name!r}; choose auto, smc or mh")
 
 
@@ -89,6 +89,9 @@ def infer(
     tune_steps: int = sampler_option("tune_steps", SamplerConfig),
     sampler: str = typer.Option("auto", help=SAMPLER_HELP_TEXT),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
+    bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge",
+                                help="NP3 under SMC: start from P3's posterior and temper the neural term in "
+                                     "(about a third of P3's cost); --no-bridge tempers NP3 in from the prior."),
     likelihood: str = typer.Option("np3", help="p3 (colour) or np3 (colour + neural)."),
     noise: str = typer.Option("fitted", help=NOISE_HELP),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
@@ -112,7 +115,7 @@ def infer(
     claim_output_folder(output, "posterior.nc", "mitsuba-p3 infer")
     config = choose_sampler(sampler, SamplerConfig(chains=chains, steps=steps, burn_in=burn_in,
                                                    tune_rounds=tune_rounds, tune_steps=tune_steps, seed=seed),
-                            particles, noise, sigma)
+                            particles, noise, sigma, bridge)
     bar, track = phase_progress_bar("sampling")
 
     with bar:
@@ -140,6 +143,9 @@ def evaluate(
     tune_steps: int = sampler_option("tune_steps", SamplerConfig),
     sampler: str = typer.Option("auto", help=SAMPLER_HELP_TEXT),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
+    bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge",
+                                help="NP3 under SMC: start from P3's posterior and temper the neural term in "
+                                     "(about a third of P3's cost); --no-bridge tempers NP3 in from the prior."),
     noise: str = typer.Option("fitted", help=NOISE_HELP + " fitted, chosen on held-out train classes "
                                              "(docs/notebook.md); paper reproduces the paper's rows."),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
@@ -167,7 +173,7 @@ def evaluate(
                                                                  spread_shots=spread_shots, direction=kl),
                               sampler=choose_sampler(sampler, SamplerConfig(
                                   chains=chains, steps=steps, burn_in=burn_in, tune_rounds=tune_rounds,
-                                  tune_steps=tune_steps, seed=seed), particles, noise, sigma))
+                                  tune_steps=tune_steps, seed=seed), particles, noise, sigma, bridge))
     bar, track = phase_progress_bar("posteriors")
 
     with bar:
@@ -197,6 +203,9 @@ def reproduce(
     sampler_name: str = typer.Option("auto", "--sampler", help=SAMPLER_HELP_TEXT.replace(
         "multi-chain Metropolis-Hastings", "the evaluation preset")),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
+    bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge",
+                                help="NP3 under SMC: start from P3's posterior and temper the neural term in "
+                                     "(about a third of P3's cost); --no-bridge tempers NP3 in from the prior."),
     noise: str = typer.Option("fitted", help=NOISE_HELP + " Runs go to runs/V-fitted (fitted), runs/V (paper)."),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma; runs go to "
                                                      "runs/V-sigmaS."),
@@ -218,7 +227,7 @@ def reproduce(
 
     sampler = choose_sampler(sampler_name, replace(PRESET, chains=chains, steps=steps, burn_in=burn_in,
                                                    tune_rounds=tune_rounds, tune_steps=tune_steps), particles,
-                             noise, sigma)
+                             noise, sigma, bridge)
     evaluation = EvaluationConfig(likelihoods=tuple(k.strip() for k in likelihoods.split(",") if k.strip()),
                                   sigma=sigma, noise=noise, sampler=sampler, episodes=episodes, jobs=jobs,
                                   distance=DistanceConfig(properties=parse_properties(distance),

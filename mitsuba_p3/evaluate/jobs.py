@@ -107,9 +107,13 @@ def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str,
     dataset = load_dataset(dataset_dir)
     shot = dataset.shots[index]
     fitted = FittedModel(model_dir)
+    # a bridged NP3 run starts from P3's particles of the same image when P3's job cached them
+    # (else infer_image runs P3 first: the same particles, since the sampler is seeded)
+    bridged = likelihood == "np3" and getattr(config.sampler, "bridge", False)
+    start_from = _cached_particles(Path(out).parents[1] / "p3" / Path(out).name) if bridged else None
     start = time.perf_counter()
     posterior = infer_image(fitted, dataset.image(shot), default_likelihood(fitted, likelihood, config.sigma, config.noise),
-                            config.sampler, renderer=config.renderer)
+                            config.sampler, renderer=config.renderer, start=start_from)
     seconds = time.perf_counter() - start
     estimate = posterior.estimate()
     summary = posterior.summary()
@@ -122,8 +126,42 @@ def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str,
                   shift=np.asarray(estimate["shift"], np.float64), yaw=np.float64(estimate["theta"]),
                   kappa=np.int64(estimate["kappa"]), seconds=np.float64(seconds),
                   max_r_hat=np.float64(summary["r_hat"].max()), min_ess=np.float64(summary["ess_bulk"].min()),
-                  render_threads=np.int64(_render_threads()), **_evidence(posterior))
+                  render_threads=np.int64(_render_threads()), **_evidence(posterior),
+                  **(_particle_arrays(posterior.particles) if likelihood == "p3" else {}))
     return out
+
+
+def _particle_arrays(particles) -> dict:
+    """An SMC run's final particles as arrays of the cache file (none for MH): what a bridged
+    NP3 run of the same image starts from."""
+    if particles is None:
+        return {}
+    rows = particles.rows
+    return {"particles_index": np.asarray(rows.index, np.int64),
+            "particles_position": np.asarray(rows.state.position, np.float32),
+            "particles_loglikelihood": np.asarray(rows.state.loglikelihood, np.float32),
+            "particles_logprior": np.asarray(rows.state.logprior, np.float32),
+            "particles_log_evidence": np.asarray(rows.log_evidence, np.float64),
+            "particles_temperatures": np.int64(rows.temperatures),
+            "particles_window": np.asarray(particles.window if particles.window else [], np.int64)}
+
+
+def _cached_particles(path: Path):
+    """The SMC particles a cached P3 posterior kept, or None (no file, an MH run, an older cache)."""
+    from ..infer.smc import Particles, Rows, SMCState
+
+    if not path.exists():
+        return None
+    try:
+        with np.load(path) as f:
+            if "particles_position" not in f.files:
+                return None
+            window = tuple(int(v) for v in f["particles_window"]) or None
+            state = SMCState(f["particles_position"], f["particles_loglikelihood"], f["particles_logprior"])
+            rows = Rows(f["particles_index"], state, f["particles_log_evidence"], int(f["particles_temperatures"]), [])
+    except Exception:                      # a damaged file: P3's own job will set it aside (_cached)
+        return None
+    return Particles(rows, window)
 
 
 def _evidence(posterior) -> dict:
@@ -279,6 +317,18 @@ def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: Evaluati
             if moved or previous.get(digest, record[digest]) != record[digest]:
                 raise EvaluationError(f"{run_dir} holds posteriors of another {source} ({previous.get(source)}"
                                       f"{'' if moved else ', changed since'}); use another --out folder or remove it")
+        if isinstance(previous.get("sampler"), dict) and "particles" in previous["sampler"]:
+            previous["sampler"].setdefault("bridge", False)     # an SMC record from before the bridge
+        if _np3_start_changed(previous, record):
+            # the bridge decides how NP3's posteriors were made, and nothing of P3's
+            if "np3" not in config.likelihoods:
+                return
+            if not any((run_dir / "posteriors" / "np3").glob("*.npz")):
+                atomic_json(path, record)
+                return
+            raise EvaluationError(f"{run_dir} holds NP3 posteriors made with the SMC's bridge "
+                                  f"{'on' if _bridge(previous) else 'off'}; pass --bridge/--no-bridge to match, "
+                                  f"or remove {run_dir / 'posteriors' / 'np3'} to sample them again")
         changed = [k for k in record if k not in ("dataset", "model", "model_digest", "labels_digest")
                    and previous.get(k) != record[k]]
         if changed:
@@ -286,6 +336,21 @@ def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: Evaluati
                                   "use another --out folder or remove it")
         return
     atomic_json(path, record)
+
+
+def _bridge(record: dict):
+    """A run record's SMC bridge setting; None for MH."""
+    sampler = record.get("sampler") or {}
+    return sampler.get("bridge") if "particles" in sampler else None
+
+
+def _np3_start_changed(previous: dict, record: dict) -> bool:
+    """Whether two run records differ in the SMC's bridge and nothing else."""
+    if _bridge(previous) is None or _bridge(record) is None or _bridge(previous) == _bridge(record):
+        return False
+    strip = lambda r: {**r, "sampler": {k: v for k, v in r["sampler"].items() if k != "bridge"}}  # noqa: E731
+    ignored = ("dataset", "model", "model_digest", "labels_digest")
+    return all(strip(previous).get(k) == strip(record)[k] for k in record if k not in ignored)
 
 
 def check_scheduler(address: str) -> None:

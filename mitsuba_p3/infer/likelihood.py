@@ -100,11 +100,14 @@ def observe(observed: np.ndarray, config: LikelihoodConfig, channels: list[Chann
 
 
 def score(observation: dict, renders, config: LikelihoodConfig, channels: list[Channel] | None = None):
-    """(B, H, W, 3) renders -> (B,) log-likelihoods of ``observation`` (JAX)."""
+    """(B, H, W, 3) renders -> (B,) log-likelihoods of ``observation`` (JAX). An observation's own
+    ``neural_weight`` entry, a number the compiled sampler takes as an argument, overrides the
+    config's: the SMC's bridge from P3 to NP3 tempers the neural term in by it."""
     log_lik = colour_log_likelihood(observation["image"], renders, config, observation.get("empty"))
     if config.kind == "np3":
         features = selected_features(renders, channels)
-        log_lik = log_lik - config.neural_weight * neural_distance(observation["features"], features)
+        weight = observation.get("neural_weight", config.neural_weight)
+        log_lik = log_lik - weight * neural_distance(observation["features"], features)
     return log_lik
 
 

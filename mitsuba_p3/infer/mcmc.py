@@ -110,6 +110,7 @@ class SamplerRun(NamedTuple):
     tuning: list                  # per round: acceptance rates, factor, restarts, modes known
     config: dict
     statistics: dict              # acceptance rates of the kept draws' walks and jumps
+    particles: object = None      # SMC: the final particles (:class:`~mitsuba_p3.infer.smc.Particles`)
 
 
 def _transition(proposal: Proposal, mode_fn: Callable, modes: int, jump_probability: float):

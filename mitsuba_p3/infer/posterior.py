@@ -9,7 +9,7 @@ the yaw is the circular mode.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -43,6 +43,7 @@ class Posterior:
     """A posterior over one image's scene, stored as ArviZ InferenceData."""
 
     idata: object  # arviz.InferenceData
+    particles: object = None  # an SMC run's final particles (not saved): an NP3 run may start from P3's
 
     def draws(self, name: str) -> np.ndarray:
         """All draws of a variable, chains merged: (chains * draws, ...)."""
@@ -117,25 +118,37 @@ def to_inference_data(model: PosteriorModel, run: SamplerRun, observed: np.ndarr
 
 def infer_image(fitted: FittedModel, observed: np.ndarray, likelihood: LikelihoodConfig | None = None,
                 sampler: SamplerConfig | SMCConfig | None = None, renderer: str = "mitsuba",
-                progress: Callable[[str, int, int], None] | None = None, attrs: dict | None = None) -> Posterior:
+                progress: Callable[[str, int, int], None] | None = None, attrs: dict | None = None,
+                start=None) -> Posterior:
     """Sample the posterior over one observed image's scene: multi-chain MH (a :class:`SamplerConfig`)
-    or tempered SMC over the shape x material hypotheses (an :class:`SMCConfig`)."""
+    or tempered SMC over the shape x material hypotheses (an :class:`SMCConfig`). ``start``: P3's
+    final particles of this image (``Posterior.particles`` of its P3 run), from which an NP3 SMC
+    run tempers the neural term in (:func:`mitsuba_p3.infer.smc.bridge`)."""
     import time
 
     likelihood = likelihood or default_likelihood(fitted, "np3")
     sampler = sampler or SamplerConfig()
     model = PosteriorModel(fitted, observed, likelihood, renderer)
-    start = time.perf_counter()
+    begin = time.perf_counter()
     if isinstance(sampler, SMCConfig):
-        run = sample_smc(model.core, model.observation, sampler, progress)
+        if start is None and sampler.bridge and likelihood.kind == "np3":
+            # NP3 = P3 x the neural term: P3's run first, then the bridge tempers the neural term in
+            colour = PosteriorModel(fitted, observed, replace(likelihood, kind="p3"), renderer)
+            start = sample_smc(colour.core, colour.observation, sampler, progress).particles
+        run = sample_smc(model.core, model.observation, sampler, progress, start)
     else:
+        if start is not None:
+            raise InferenceError("only an SMC run can start from another run's particles")
         run = sample(model.core.target(sampler.material_gibbs), sampler, progress, observation=model.observation)
-    seconds = time.perf_counter() - start
+    seconds = time.perf_counter() - begin
     info = {"model": str(fitted.root), "likelihood": likelihood.kind, "sigma": likelihood.sigma,
             "noise": asdict(likelihood),
-            "renderer": renderer, "sampler": run.config, "tuning": run.tuning, "seconds": seconds,
-            "acceptance": float(run.accepted.mean()), **run.statistics, **(attrs or {})}
-    return to_inference_data(model, run, observed, info)
+            "renderer": renderer, "sampler": run.config, "tuning": run.tuning,
+            "acceptance": float(run.accepted.mean()), **run.statistics,
+            "seconds": seconds, **(attrs or {})}      # all of this call's (an NP3 run's includes P3's)
+    posterior = to_inference_data(model, run, observed, info)
+    posterior.particles = run.particles
+    return posterior
 
 
 def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | None = None,

@@ -76,6 +76,14 @@ to three were better on fsclvr's train images and worse on room's (``docs/notebo
 at 1.5 times the mean cost. The draws come from each run in
 proportion to its share of its hypothesis's pooled estimate.
 
+**NP3 from P3's posterior.** NP3's likelihood is P3's colour likelihood times a neural term,
+so NP3's run need not start from the prior: :func:`bridge` takes P3's final particles of the
+same image (every run, on the window P3 scored) and tempers only the neural term in, each run's
+evidence growing from P3's by the mean of the neural term's weights (Z_NP3 = Z_P3 E_P3[p_neural]).
+It is the same kind of SMC step as the rest, so the estimate stays unbiased; since the neural
+term moves the posterior little on this data, it costs a fraction of a run from the prior.
+``bridge=False`` runs NP3 from the prior like P3.
+
 Within a hypothesis the class logits are fixed (they play no role); the rest of
 the prior is the model's. The result is a :class:`~mitsuba_p3.infer.mcmc.SamplerRun`
 of draws from the mixture over hypotheses, with each hypothesis's log evidence,
@@ -96,6 +104,10 @@ from .mcmc import SamplerRun
 
 # class logits (z_kappa) that put a point firmly in each shape class: softmax([z1, z2, 0])
 CLASS_LOGITS = np.array([[8.0, 0.0], [0.0, 8.0], [-8.0, -8.0]], np.float32)
+# what the random walk moves: not the class (fixed by the hypothesis) nor the material (the material update's)
+WALK_MASK = np.array([0.0 if any(i in range(DIMENSION)[SLICES[name]]
+                                 for name in ("kappa", "colour", "ambient", "diffuse", "specular")) else 1.0
+                      for i in range(DIMENSION)], np.float32)
 
 
 @dataclass(frozen=True)
@@ -115,6 +127,9 @@ class SMCConfig:
     target_ess: float = 0.5        # of the incremental weights, as a share of the particles
     max_temperatures: int = 100    # a run that needs more jumps to lambda = 1 (statistics: 'forced')
     draws: int = 400               # posterior draws returned (resampled from the mixture)
+    # NP3 only: start from P3's final particles and temper the neural term in (:func:`bridge`),
+    # rather than temper all of NP3's likelihood in from the prior
+    bridge: bool = True
     seed: int = 0
 
     def __post_init__(self):
@@ -326,6 +341,34 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int = 0):
     return score, walk, material
 
 
+def _move(kernels, state: SMCState, index, tempering: np.ndarray, scale: np.ndarray, sweeps: int,
+          material_every: int, key, observation) -> tuple[SMCState, np.ndarray, object]:
+    """``sweeps`` walk sweeps of every row at its temperature, each ``material_every``-th and the
+    last followed by the material update; each row's walk covariance is 2.38^2 / d times its own
+    particles' (moved dimensions only) times its ``scale``. Returns the moved particles (numpy),
+    each row's walk acceptance and the key, split once per sweep."""
+    import jax
+    import jax.numpy as jnp
+
+    _, walk, material = kernels
+    moved = WALK_MASK > 0
+    z = np.asarray(state.position)
+    tril = np.zeros((len(z), DIMENSION, DIMENSION), np.float32)
+    for h in range(len(z)):
+        cov = np.cov(z[h][:, moved], rowvar=False) + 1e-6 * np.eye(moved.sum())
+        tril[h][np.ix_(moved, moved)] = np.linalg.cholesky(cov) * 2.38 / np.sqrt(moved.sum()) * scale[h]
+    state = SMCState(*(jnp.asarray(a) for a in state))
+    lam, tril = jnp.asarray(tempering, jnp.float32), jnp.asarray(tril)
+    rates = []
+    for i in range(sweeps):
+        key, k_walk, k_material = jax.random.split(key, 3)
+        state, accepted = walk(k_walk, state, index, lam, tril, observation)
+        rates.append(np.asarray(accepted))
+        if (i + 1) % material_every == 0 or i == sweeps - 1:
+            state = material(k_material, state, index, lam, observation)
+    return SMCState(*(np.array(a) for a in state)), np.mean(rates, axis=0), key
+
+
 class Rows(NamedTuple):
     """The outcome of tempering some rows (independent runs) to lambda = 1: each row's hypothesis,
     particles, log evidence estimate and temperature count."""
@@ -341,13 +384,10 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
     """One tempered SMC per row, all rows in the same batched renders; row r runs hypothesis
     ``index[r]`` (see the module docstring for the steps). ``image``: the whole image, whose
     footprint places the first draws (default: the observation's, when it is not a window)."""
-    import jax
     import jax.numpy as jnp
 
-    mask = np.ones(DIMENSION, np.float32)
-    for name in ("kappa", "colour", "ambient", "diffuse", "specular"):
-        mask[SLICES[name]] = 0.0          # fixed by the hypothesis, or the material update's business
-    score, walk, material = _kernels(core, tuple(mask.tolist()), config.kinds, config.ridge)
+    kernels = _kernels(core, tuple(WALK_MASK.tolist()), config.kinds, config.ridge)
+    score = kernels[0]
     space = hypotheses_of(core.prior, config.kinds)
     rows = Hypotheses(tuple(space.names[i] for i in index), *(a[index] for a in space[1:]))
     count, n = len(index), config.particles
@@ -384,24 +424,9 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
             tempering[h] = min(1.0, tempering[h] + step)
             chosen = systematic_resample(rng, log_w)
             z[h], loglik[h], logprior[h] = z[h][chosen], loglik[h][chosen], logprior[h][chosen]
-        # walk covariance per row from its particles (moved dimensions only)
-        moved = mask > 0
-        tril = np.zeros((count, DIMENSION, DIMENSION), np.float32)
-        for h in range(count):
-            cov = np.cov(z[h][:, moved], rowvar=False) + 1e-6 * np.eye(moved.sum())
-            tril[h][np.ix_(moved, moved)] = np.linalg.cholesky(cov) * 2.38 / np.sqrt(moved.sum()) * scale[h]
-        state = SMCState(jnp.asarray(z), jnp.asarray(loglik), jnp.asarray(logprior))
-        rates = []
-        lam = jnp.asarray(tempering, jnp.float32)
         sweeps = config.mcmc_steps + (config.final_steps if np.all(tempering >= 1.0) else 0)
-        for i in range(sweeps):
-            key, k_walk, k_material = jax.random.split(key, 3)
-            state, accepted = walk(k_walk, state, index_j, lam, jnp.asarray(tril), observation)
-            rates.append(np.asarray(accepted))
-            if (i + 1) % config.material_every == 0 or i == sweeps - 1:
-                state = material(k_material, state, index_j, lam, observation)
-        z, loglik, logprior = (np.array(a) for a in state)
-        rate = np.mean(rates, axis=0)
+        (z, loglik, logprior), rate, key = _move(kernels, SMCState(z, loglik, logprior), index_j, tempering, scale,
+                                                 sweeps, config.material_every, key, observation)
         scale *= np.clip(np.exp(2.0 * (rate - 0.25)), 0.5, 2.0)   # towards 25% walk acceptance
         acceptance_history.append(rate.tolist())
         if progress:
@@ -464,36 +489,134 @@ def shape_weights(statistics: dict) -> dict:
     return weights
 
 
+def bridge(core, observation, start: Rows, config: SMCConfig, rng: np.random.Generator, key,
+           progress: Callable[[str, int, int], None] | None = None) -> Rows:
+    """From P3's posterior to NP3's: temper the neural term in, starting from P3's final particles.
+
+    NP3's likelihood is P3's colour likelihood times the neural term, so with ``start`` the rows
+    of P3's run (every row at lambda = 1 of the colour likelihood) and ``core`` NP3's, the targets
+
+        p(z | h) p_colour(I | z) p_neural(I | z)^lambda,   lambda from 0 to 1,
+
+    lead from P3's posterior to NP3's, and each row's log evidence grows from P3's estimate by the
+    log mean of every increment's weights, exp(dlambda log p_neural): Z_NP3 = Z_P3 E_P3[p_neural].
+    The steps are :func:`temper`'s (ESS-chosen increments, one lambda for all rows since the
+    observation carries the neural weight, systematic resampling, ``mcmc_steps`` sweeps and
+    ``final_steps`` more at lambda = 1): with P3's run before them they make one SMC sampler from
+    the prior to NP3's posterior, so the estimate is as unbiased as a run from the prior, and far
+    cheaper when the neural term moves the posterior little, as on this project's data (a few nats
+    beside colour terms of hundreds: one or two increments)."""
+    import jax.numpy as jnp
+
+    if core.config.kind != "np3":
+        from ..errors import MitsubaP3Error
+
+        raise MitsubaP3Error("the bridge tempers the neural term in: it needs the np3 likelihood's core")
+    kernels = _kernels(core, tuple(WALK_MASK.tolist()), config.kinds, config.ridge)
+    score = kernels[0]
+    index = jnp.asarray(start.index, jnp.int32)
+    weight = np.float32(core.config.neural_weight)
+    weighted = lambda w: {**observation, "neural_weight": np.float32(w)}  # noqa: E731
+
+    def colour_and_neural(z):
+        colour, logprior = (np.asarray(a, np.float64) for a in score(z, index, weighted(0.0)))
+        full = np.asarray(score(z, index, weighted(weight))[0], np.float64)
+        return colour, full - colour, logprior
+
+    z = np.asarray(start.state.position, np.float32)
+    log_evidence = np.array(start.log_evidence, np.float64)
+    scale, lam, steps, acceptance = np.ones(len(z)), 0.0, 0, []
+    while lam < 1.0 and steps < config.max_temperatures:
+        steps += 1
+        colour, neural, logprior = colour_and_neural(z)
+        neural = np.where(np.isfinite(neural), neural, -1e30)
+        step = min(next_increment(neural[h], 1.0 - lam, config.target_ess) for h in range(len(z)))
+        if steps == config.max_temperatures:
+            step = 1.0 - lam
+        for h in range(len(z)):
+            log_w = step * neural[h]
+            log_evidence[h] += np.logaddexp.reduce(log_w) - np.log(len(log_w))
+            chosen = systematic_resample(rng, log_w)
+            z[h], colour[h], neural[h], logprior[h] = z[h][chosen], colour[h][chosen], neural[h][chosen], \
+                logprior[h][chosen]
+        lam = 1.0 if 1.0 - (lam + step) < 1e-9 else lam + step
+        loglik = (colour + lam * neural).astype(np.float32)
+        sweeps = config.mcmc_steps + (config.final_steps if lam >= 1.0 else 0)
+        state, rate, key = _move(kernels, SMCState(z, loglik, logprior.astype(np.float32)), index,
+                                 np.ones(len(z)), scale, sweeps, config.material_every, key, weighted(lam * weight))
+        z = state.position
+        scale *= np.clip(np.exp(2.0 * (rate - 0.25)), 0.5, 2.0)
+        acceptance.append(rate.tolist())
+        if progress:
+            progress("bridge", int(100 * lam), 100)
+    return Rows(np.asarray(start.index), state, log_evidence, start.temperatures + steps, start.acceptance + acceptance)
+
+
+class Particles(NamedTuple):
+    """An SMC run's final particles, kept so that another likelihood's run can start from them
+    (:func:`bridge`): its rows and the window its likelihood scored (None: the whole image)."""
+    rows: Rows
+    window: tuple | None
+
+
 def sample_smc(core, observation, config: SMCConfig | None = None,
-               progress: Callable[[str, int, int], None] | None = None) -> SamplerRun:
-    """Tempered SMC of every hypothesis of one image (see the module docstring)."""
+               progress: Callable[[str, int, int], None] | None = None,
+               start: Particles | None = None) -> SamplerRun:
+    """Tempered SMC of every hypothesis of one image (see the module docstring). With ``start``,
+    P3's final particles of the same image and sampler settings, ``core`` being NP3's, the run
+    is :func:`bridge`'s instead: from P3's posterior to NP3's, on the window P3 scored."""
     import jax
 
     config = config or SMCConfig()
-    start = time.perf_counter()
+    begin = time.perf_counter()
     rng = np.random.default_rng(config.seed)
     key = jax.random.PRNGKey(config.seed)
     space = hypotheses_of(core.prior, config.kinds)
     count = len(space.names)
     image = np.asarray(observation["image"])
     window = None
-    if config.window and core.renderer_kind == "mitsuba" and "window" not in observation:
-        window = core.window_for(image, tuple(config.window))
-        observation = core.observe(image, window) if window else observation
-    # round 1: islands x every hypothesis; later rounds: islands x those still in contention
+    if start is not None:
+        window = start.window
+        if "window" not in observation:
+            observation = core.observe(image, window) if window else observation
+        # streams of their own: P3's run used the seed's, and the bridge's moves must not repeat them
+        rng, key = np.random.default_rng([config.seed, 1]), jax.random.fold_in(key, 1)
+        rows, rounds = bridge(core, observation, start.rows, config, rng, key, progress), 1
+        pooled = pooled_evidence(rows, count)
+    else:
+        if config.window and core.renderer_kind == "mitsuba" and "window" not in observation:
+            window = core.window_for(image, tuple(config.window))
+            observation = core.observe(image, window) if window else observation
+        rows, pooled, rounds = _rounds(core, observation, image, space, config, rng, key, progress)
+    return _sampler_run(core, rows, pooled, space, config, rng, window, rounds, time.perf_counter() - begin)
+
+
+def _rounds(core, observation, image, space: Hypotheses, config: SMCConfig, rng, key, progress):
+    """Round 1: islands x every hypothesis; later rounds: islands x those still in contention."""
+    import jax
+
+    count = len(space.names)
     contenders, parts = np.arange(count), []
-    for round_ in range(config.rounds):
+    for _ in range(config.rounds):
         key, k_round = jax.random.split(key)
         parts.append(temper(core, observation, np.tile(contenders, config.islands), config, rng, k_round, progress,
                             image))
         rows = _joined(parts)
         pooled = pooled_evidence(rows, count)
-        log_posterior = space.log_prior + pooled
-        weights = np.exp(log_posterior - np.logaddexp.reduce(log_posterior))
         low, high = island_range(rows, count)
         decided, contenders = decision(space.log_prior, pooled, low, high, config.decided)
         if decided or len(contenders) < 2:
             break
+    return rows, pooled, len(parts)
+
+
+def _sampler_run(core, rows: Rows, pooled: np.ndarray, space: Hypotheses, config: SMCConfig,
+                 rng: np.random.Generator, window, rounds: int, seconds: float) -> SamplerRun:
+    """Draws from the mixture over hypotheses, each hypothesis weighed by its pooled evidence, and the
+    run's statistics; the final particles ride along (``particles``) for a bridge to start from."""
+    count = len(space.names)
+    log_posterior = space.log_prior + pooled
+    weights = np.exp(log_posterior - np.logaddexp.reduce(log_posterior))
     # a row's share of its hypothesis is its own estimate's share of the hypothesis's sum
     row_weights = np.zeros(len(rows.index))
     for h in range(count):
@@ -510,10 +633,10 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
     positions = z[chosen_row, chosen_n].reshape(chains, per_chain, -1)
     logdensity = (logprior + loglik)[chosen_row, chosen_n].reshape(chains, per_chain)
     shiny_rows = (z[..., SLICES["specular"].start] > core.prior.specular_threshold()).mean(axis=1)
-    statistics = {"hypotheses": {}, "rounds": len(parts), "temperatures": rows.temperatures,
+    statistics = {"hypotheses": {}, "rounds": rounds, "temperatures": rows.temperatures,
                   "window": list(window) if window else None,
                   "forced": bool(rows.temperatures == config.max_temperatures),
-                  "walk_acceptance": float(np.mean(rows.acceptance[-1])), "seconds": time.perf_counter() - start}
+                  "walk_acceptance": float(np.mean(rows.acceptance[-1])), "seconds": seconds}
     for h, name in enumerate(space.names):
         mine = rows.index == h
         share = row_weights[mine] / max(row_weights[mine].sum(), 1e-300)
@@ -526,4 +649,4 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
                                           "max_log_likelihood": float(best.max()) if best.size else None}
     return SamplerRun(positions.astype(np.float32), logdensity.astype(np.float32),
                       np.ones((chains, per_chain), bool), {}, [{"acceptance": a} for a in rows.acceptance],
-                      {"sampler": "smc", **asdict(config)}, statistics)
+                      {"sampler": "smc", **asdict(config)}, statistics, Particles(rows, window))
