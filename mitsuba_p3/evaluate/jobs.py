@@ -110,7 +110,7 @@ def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str,
     # a bridged NP3 run starts from P3's particles of the same image when P3's job cached them
     # (else infer_image runs P3 first: the same particles, since the sampler is seeded)
     bridged = likelihood == "np3" and getattr(config.sampler, "bridge", False)
-    start_from = _cached_particles(Path(out).parents[1] / "p3" / Path(out).name) if bridged else None
+    start_from = _cached_particles(posterior_path(Path(out).parents[2], "p3", index)) if bridged else None
     start = time.perf_counter()
     posterior = infer_image(fitted, dataset.image(shot), default_likelihood(fitted, likelihood, config.sigma, config.noise),
                             config.sampler, renderer=config.renderer, start=start_from)
