@@ -133,7 +133,7 @@ def reproduce(data: str | Path, out: str | Path, config: ReproduceConfig | None 
         evaluate(folder, model, run_dir, evaluation, progress=track, spread_from=spread_from)
         minutes[variant] = (time.perf_counter() - start) / 60
         start = time.perf_counter()
-        posterior_figure(folder, model, run_dir, evaluation, out / "figures" / f"posterior-{variant}.png")
+        posterior_figure(folder, model, run_dir, evaluation, out / "figures" / posterior_figure_name(variant, noise))
         # the tables cover every benchmark and sigma evaluated so far, this run's included
         write_paper_tables(out, collect(out))
         reported = (time.perf_counter() - start) / 60
@@ -209,6 +209,16 @@ def example_shot(dataset):
 
     test = dataset.split("test")
     return test[int(np.random.default_rng(0).integers(len(test)))]
+
+
+def posterior_figure_name(variant: str, sigma: float | str | None) -> str:
+    """``posterior-V.png`` for the headline run (the fitted noise model), ``posterior-V-paper.png``
+    for the paper's likelihood and ``posterior-RUN.png`` for any other run of the benchmark, so that
+    a run with other settings does not overwrite the headline's figure."""
+    name = run_name(variant, sigma)
+    if name == run_name(variant, "fitted"):
+        return f"posterior-{variant}.png"
+    return f"posterior-{variant}-paper.png" if name == variant else f"posterior-{name}.png"
 
 
 def posterior_figure(folder: Path, model: Path, run_dir: Path, evaluation: EvaluationConfig, figure: Path) -> Path:
