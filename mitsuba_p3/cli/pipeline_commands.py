@@ -26,6 +26,10 @@ SAMPLER_HELP_TEXT = ("auto (smc under a fitted noise model, mh under the paper's
                      "options apply).")
 
 
+BRIDGE_HELP = ("NP3 under SMC: start from P3's posterior of the image and temper the neural term in (about "
+               "a quarter of P3's cost); --no-bridge tempers all of NP3's likelihood in from the prior.")
+
+
 def choose_sampler(name: str, mh: SamplerConfig, particles: int, noise: str, sigma: float | None,
                    bridge: bool = SMCConfig.bridge) -> SamplerConfig | SMCConfig:
     """The sampler a command's --sampler names: the MH settings given, or SMC with their seed; ``auto``
@@ -89,9 +93,7 @@ def infer(
     tune_steps: int = sampler_option("tune_steps", SamplerConfig),
     sampler: str = typer.Option("auto", help=SAMPLER_HELP_TEXT),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
-    bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge",
-                                help="NP3 under SMC: start from P3's posterior and temper the neural term in "
-                                     "(about a third of P3's cost); --no-bridge tempers NP3 in from the prior."),
+    bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge", help=BRIDGE_HELP),
     likelihood: str = typer.Option("np3", help="p3 (colour) or np3 (colour + neural)."),
     noise: str = typer.Option("fitted", help=NOISE_HELP),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
@@ -143,9 +145,7 @@ def evaluate(
     tune_steps: int = sampler_option("tune_steps", SamplerConfig),
     sampler: str = typer.Option("auto", help=SAMPLER_HELP_TEXT),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
-    bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge",
-                                help="NP3 under SMC: start from P3's posterior and temper the neural term in "
-                                     "(about a third of P3's cost); --no-bridge tempers NP3 in from the prior."),
+    bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge", help=BRIDGE_HELP),
     noise: str = typer.Option("fitted", help=NOISE_HELP + " fitted, chosen on held-out train classes "
                                              "(docs/notebook.md); paper reproduces the paper's rows."),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
@@ -203,9 +203,7 @@ def reproduce(
     sampler_name: str = typer.Option("auto", "--sampler", help=SAMPLER_HELP_TEXT.replace(
         "multi-chain Metropolis-Hastings", "the evaluation preset")),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
-    bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge",
-                                help="NP3 under SMC: start from P3's posterior and temper the neural term in "
-                                     "(about a third of P3's cost); --no-bridge tempers NP3 in from the prior."),
+    bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge", help=BRIDGE_HELP),
     noise: str = typer.Option("fitted", help=NOISE_HELP + " Runs go to runs/V-fitted (fitted), runs/V (paper)."),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma; runs go to "
                                                      "runs/V-sigmaS."),
