@@ -222,6 +222,13 @@ class PosteriorCore:
         """log p(I | z) of one position z (15,) (JAX; vmap for many)."""
         return score(observation, self._image(z, observation)[None], self.config, self.channels)[0]
 
+    def log_likelihood_parts(self, z, observation):
+        """(colour, whole) log likelihood of one position z from one render (JAX; vmap for many): the
+        colour term alone, and with the neural term at the observation's weight (NP3's bridge)."""
+        image = self._image(z, observation)[None]
+        return (score({**observation, "neural_weight": 0.0}, image, self.config, self.channels)[0],
+                score(observation, image, self.config, self.channels)[0])
+
     def logdensity(self, z, observation):
         """log p(z) + log p(I | z) of one position z (15,) (JAX; vmap for many)."""
         return self.prior.log_prob(z) + self.log_likelihood(z, observation)

@@ -270,11 +270,20 @@ def footprint_start(core, image: np.ndarray, draws: np.ndarray, rng: np.random.G
     return (log_p - log_q).reshape(draws.shape[:2])
 
 
+class Kernels(NamedTuple):
+    """The jitted functions of one core's SMC (see :func:`_kernels`)."""
+    score: Callable
+    walk: Callable
+    material: Callable
+    parts: Callable
+
+
 @functools.lru_cache(maxsize=4)
-def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int = 0):
-    """Jitted (score, walk, material) for one :class:`PosteriorCore`: scores of all particles, and the two
-    moves of all particles at per-row temperatures. Every row is one run of one hypothesis; ``index``
-    (R,) names each row's hypothesis (a row of :func:`hypotheses_of` without islands)."""
+def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int = 0) -> Kernels:
+    """Jitted kernels for one :class:`PosteriorCore`: scores of all particles, the two moves of all
+    particles at per-row temperatures, and (for the bridge) the colour and whole log likelihood of
+    all particles from one render each. Every row is one run of one hypothesis; ``index`` (R,) names
+    each row's hypothesis (a row of :func:`hypotheses_of` without islands)."""
     import jax
     import jax.numpy as jnp
     from blackjax.mcmc.random_walk import RWState
@@ -293,6 +302,11 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int = 0):
     @jax.jit
     def score(z, index, observation):
         return loglik_all(z, observation), logprior_all(z, index)
+
+    @jax.jit
+    def parts(z, index, observation):
+        colour, whole = jax.vmap(lambda p: core.log_likelihood_parts(p, observation))(z.reshape(-1, z.shape[-1]))
+        return colour.reshape(z.shape[:2]), whole.reshape(z.shape[:2]), logprior_all(z, index)
 
     @jax.jit
     def walk(key, state, index, tempering, tril, observation):
@@ -338,7 +352,7 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int = 0):
         moved = moved.reshape(z.shape)
         return SMCState(moved, new_loglik.reshape(loglik.shape), logprior_all(moved, index))
 
-    return score, walk, material
+    return Kernels(score, walk, material, parts)
 
 
 def _move(kernels, state: SMCState, index, tempering: np.ndarray, scale: np.ndarray, sweeps: int,
@@ -350,7 +364,7 @@ def _move(kernels, state: SMCState, index, tempering: np.ndarray, scale: np.ndar
     import jax
     import jax.numpy as jnp
 
-    _, walk, material = kernels
+    walk, material = kernels.walk, kernels.material
     moved = WALK_MASK > 0
     z = np.asarray(state.position)
     tril = np.zeros((len(z), DIMENSION, DIMENSION), np.float32)
@@ -387,7 +401,7 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
     import jax.numpy as jnp
 
     kernels = _kernels(core, tuple(WALK_MASK.tolist()), config.kinds, config.ridge)
-    score = kernels[0]
+    score = kernels.score
     space = hypotheses_of(core.prior, config.kinds)
     rows = Hypotheses(tuple(space.names[i] for i in index), *(a[index] for a in space[1:]))
     count, n = len(index), config.particles
@@ -513,15 +527,13 @@ def bridge(core, observation, start: Rows, config: SMCConfig, rng: np.random.Gen
 
         raise MitsubaP3Error("the bridge tempers the neural term in: it needs the np3 likelihood's core")
     kernels = _kernels(core, tuple(WALK_MASK.tolist()), config.kinds, config.ridge)
-    score = kernels[0]
     index = jnp.asarray(start.index, jnp.int32)
     weight = np.float32(core.config.neural_weight)
     weighted = lambda w: {**observation, "neural_weight": np.float32(w)}  # noqa: E731
 
     def colour_and_neural(z):
-        colour, logprior = (np.asarray(a, np.float64) for a in score(z, index, weighted(0.0)))
-        full = np.asarray(score(z, index, weighted(weight))[0], np.float64)
-        return colour, full - colour, logprior
+        colour, whole, logprior = (np.asarray(a, np.float64) for a in kernels.parts(z, index, weighted(weight)))
+        return colour, whole - colour, logprior
 
     z = np.asarray(start.state.position, np.float32)
     log_evidence = np.array(start.log_evidence, np.float64)
