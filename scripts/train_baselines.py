@@ -17,7 +17,9 @@ and a score already written is kept unless ``--rescore``. The trainings are long
     nohup nice python scripts/train_baselines.py --data data --out results > baselines.log 2>&1 &
 
 Prints one JSON line per finished baseline (iterations, kept iteration, best validation
-accuracy, test accuracy per setting).
+accuracy, test accuracy per setting) and keeps the benchmark's score in the training folder too
+(``scores.json``); ``mitsuba-p3 baseline status OUT/baselines --runs OUT/runs`` tells, in any
+session, how far each training got.
 """
 from __future__ import annotations
 
@@ -27,6 +29,7 @@ from pathlib import Path
 
 from mitsuba_p3.baselines.train import DEFAULT_ITERATIONS, Checkpoint, TrainConfig, evaluate_baseline, train_baseline
 from mitsuba_p3.cli.app import progress_bar
+from mitsuba_p3.files import atomic_json
 
 
 def main() -> None:
@@ -65,6 +68,8 @@ def main() -> None:
                         evaluate_baseline(trained, args.data / target, args.out / "runs" / target, args.episodes)
                     result = json.loads(result_file.read_text())
                     scored[target] = {k: round(100 * v["mean"], 1) for k, v in result["accuracy"].items()}
+                    if target == benchmark:     # the training folder keeps its own score (baseline status reads it)
+                        atomic_json(trained / "scores.json", result)
                 print(json.dumps({"baseline": name, "iterations": state.iteration, "early_stopped": state.stopped,
                                   "kept_iteration": state.kept_iteration,
                                   "best_validation_accuracy": state.best_validation,

@@ -110,3 +110,37 @@ def test_cli_trains_and_evaluates_on_a_benchmark(tmp_path):
     bad = subprocess.run(cli + ["train", "protonets", str(tmp_path / "data"), "--out", str(tmp_path / "x"),
                                 "--resolution", "64"], capture_output=True, text=True, timeout=300)
     assert bad.returncode == 2 and "56 or 84" in bad.stderr
+
+
+def test_status_reads_where_training_is_and_only_the_kept_networks_score(tmp_path):
+    """``baseline status``: a stopped and an unfinished training, read from their checkpoints; a score
+    counts only if it was made from the checkpoint's kept network (a stale one is not shown)."""
+    import json
+
+    from mitsuba_p3.baselines.status import status_of, status_table, training_folders
+
+    images = _synthetic(0, 18)
+    frozen = TrainConfig(method="protonets", resolution=RES, iterations=50, train_ways=(5,), checkpoint_every=2,
+                         validation_classes=6, validation_episodes=6, patience=2, learning_rate=1e-12)
+    meta_train(images, tmp_path / "trained" / f"fsclvr-protonets-{RES}", frozen)
+    meta_train(images, tmp_path / "trained" / f"room-protonets-{RES}", TrainConfig(**{**frozen.__dict__,
+                                                                                      "iterations": 2}))
+    (tmp_path / "trained" / "notes").mkdir()
+    folders = training_folders([tmp_path / "trained"])
+    assert [f.name for f in folders] == [f"fsclvr-protonets-{RES}", f"room-protonets-{RES}"]
+
+    def score(target, kept):
+        path = tmp_path / "runs" / target / "baselines" / f"protonets-{RES}.json"
+        path.parent.mkdir(parents=True)
+        path.write_text(json.dumps({"kept_iteration": kept, "accuracy": {"5-way 1-shot": {"mean": 0.5}}}))
+
+    score("fsclvr", 2)
+    score("ood", 4)                                                      # an earlier kept network's: stale
+    stopped, capped = (status_of(f, tmp_path / "runs") for f in folders)
+    assert (stopped.state, stopped.iterations, stopped.kept) == ("early-stopped", 6, 2)
+    assert stopped.scores == {"fsclvr": {"5-way 1-shot": 50.0}}
+    assert (capped.state, capped.iterations, capped.scores) == ("at its cap", 2, {})
+    table = status_table([stopped, capped])
+    assert "| fsclvr 50.0 / - / - / - |" in table and "not scored" in table
+    with pytest.raises(BaselineError, match="no baseline checkpoint"):
+        training_folders([tmp_path / "trained" / "notes"])

@@ -82,3 +82,25 @@ def test_sampler_auto_follows_the_noise_model():
     assert choose_sampler("smc", mh, 16, "paper", None) == SMCConfig(particles=16, seed=3)
     with pytest.raises(ConfigError, match="choose auto, smc or mh"):
         choose_sampler("nuts", mh, 16, "paper", None)
+
+
+def test_progress_goes_to_stderr_with_plain_lines_in_a_log(capsys):
+    """Written to a file, a progress bar keeps stdout clean (commands print JSON there) and leaves
+    plain lines in the log: one per phase's end and, between, at most one per ``log_every``."""
+    from mitsuba_p3.cli.app import phase_progress_bar, progress_bar
+
+    bar, track = phase_progress_bar("reproduce")
+    with bar:
+        for phase in ("fsclvr: fit", "fsclvr: posteriors p3"):
+            for done in range(1, 5):
+                track(phase, done, 4)
+    bar, update = progress_bar("train", log_every=0.0)
+    with bar:
+        for done in range(1, 4):
+            update(done, 3)
+    out, err = capsys.readouterr()
+    assert out == ""
+    lines = [line for line in err.splitlines() if " after " in line]
+    assert [line.split(" after ")[0] for line in lines] == [
+        "fsclvr: fit: 4/4", "fsclvr: posteriors p3: 4/4", "train: 1/3", "train: 2/3", "train: 3/3"]
+    assert "left" in lines[2] and "left" not in lines[4]

@@ -246,7 +246,7 @@ def meta_train(images: dict[str, np.ndarray], out: str | Path, config: TrainConf
     predict = jax.jit(model.predict, static_argnums=4)
     params, opt_state = state.params, state.opt_state
     # resumed with another patience: whether training has stopped is decided again
-    state.stopped = bool(tasks) and _since_best(state) >= config.patience
+    state.stopped = bool(tasks) and since_best(state) >= config.patience
     while state.iteration < config.iterations and not state.stopped:
         way = ways[state.iteration % len(ways)]
         batch = tuple(sample_task(rng, images, way, config.k_shot)[:4] for _ in range(config.meta_batch))
@@ -258,9 +258,9 @@ def meta_train(images: dict[str, np.ndarray], out: str | Path, config: TrainConf
             if tasks:
                 score = validation_accuracy(predict, params, tasks)
                 state.validation.append((state.iteration, score))
-                if _since_best(state) == 0:
+                if since_best(state) == 0:
                     state.best_params, state.best_iteration = params, state.iteration
-                state.stopped = _since_best(state) >= config.patience
+                state.stopped = since_best(state) >= config.patience
             state.save(out)
         if progress:
             progress(state.iteration, config.iterations)
@@ -269,7 +269,7 @@ def meta_train(images: dict[str, np.ndarray], out: str | Path, config: TrainConf
     return state
 
 
-def _since_best(state: Checkpoint) -> int:
+def since_best(state: Checkpoint) -> int:
     """Checkpoints since the best validation accuracy (ties: the earliest); 0 when there is none yet."""
     if not state.validation:
         return 0

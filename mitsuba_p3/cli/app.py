@@ -36,27 +36,57 @@ def parse_resolution(text: str | None) -> tuple[int | None, int | None]:
     return height, width
 
 
-def progress_bar(description: str):
-    """A rich progress bar on stderr; returns (context manager, callback(done, total))."""
+# seconds between the plain progress lines written when stderr is a file (a background run's log)
+LOG_EVERY = 60.0
+
+
+def progress_bar(description: str, log_every: float = LOG_EVERY):
+    """A rich progress bar on stderr; returns (context manager, callback(done, total)).
+
+    On a terminal the bar redraws itself. Written to a file (``nohup ... 2> run.log``) a live bar
+    shows nothing until it stops, so there the callback also writes a plain line, at most every
+    ``log_every`` seconds and when the work is done: what, how far, for how long, and the time left
+    at the rate so far."""
+    import sys
+    import time
+
+    from rich.console import Console
     from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
                                TimeRemainingColumn)
 
+    console = Console(stderr=True)
     bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                   TimeElapsedColumn(), TimeRemainingColumn(), transient=False)
+                   TimeElapsedColumn(), TimeRemainingColumn(), transient=False, console=console)
     task = bar.add_task(description, total=None)
+    # the line's clock: since the last line, and since the current description (a phase) began
+    clock = {"line": time.monotonic(), "phase": time.monotonic(), "name": description}
 
     def update(done: int, total: int) -> None:
         bar.update(task, completed=done, total=total)
+        now, name = time.monotonic(), bar.tasks[0].description
+        if name != clock["name"]:
+            clock.update(phase=now, name=name)
+        if console.is_terminal or not (now - clock["line"] >= log_every or (total and done >= total)):
+            return
+        clock["line"] = now
+        spent = now - clock["phase"]
+        left = f", about {_minutes(spent * (total - done) / done)} left" if done and total and done < total else ""
+        print(f"{name}: {done}/{total or '?'} after {_minutes(spent)}{left}", file=sys.stderr, flush=True)
 
     return bar, update
 
 
+def _minutes(seconds: float) -> str:
+    return f"{seconds / 60:.1f} min" if seconds >= 60 else f"{seconds:.0f} s"
+
+
 def phase_progress_bar(description: str):
     """A progress bar whose callback(phase, done, total) also names the current phase."""
-    bar, _ = progress_bar(description)
+    bar, update = progress_bar(description)
 
     def track(phase: str, done: int, total: int) -> None:
-        bar.update(bar.task_ids[0], description=phase, completed=done, total=total)
+        bar.update(bar.task_ids[0], description=phase)
+        update(done, total)
 
     return bar, track
 

@@ -66,3 +66,16 @@ def baseline_evaluate(
         result = evaluate_baseline(trained, dataset, out, episodes, progress=update)
     typer.echo(json.dumps({result["model"]: {k: round(100 * v["mean"], 1) for k, v in result["accuracy"].items()}},
                           indent=2))
+
+
+@baseline_app.command("status")
+def baseline_status(
+    trained: list[Path] = typer.Argument(..., help="Training folders, or folders of them (e.g. results/baselines)."),
+    runs: Optional[Path] = typer.Option(None, help="The reproduction's run folders (OUT/runs), where "
+                                        "train_baselines.py writes the test scores."),
+) -> None:
+    """Where each baseline's training is (iterations, kept iteration, best validation accuracy, early
+    stopped or not) and, once scored, its test accuracy: a markdown table from the checkpoints."""
+    from ..baselines.status import status_of, status_table, training_folders
+
+    typer.echo(status_table([status_of(folder, runs) for folder in training_folders(trained)]))
