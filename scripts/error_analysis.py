@@ -6,7 +6,11 @@ true and the predicted class differ, and the most frequent (true -> predicted)
 pairs, so one sees at a glance whether errors come from shape, colour or
 material. It then splits the attribute recovery of ``RUN/attributes.csv`` (what each test
 posterior names) by the object's true size: on 120x160 images a small object covers a few
-dozen pixels. The episodes are re-drawn from the data set as evaluation draws them
+dozen pixels. Last, for an SMC run, how far each image's two (or more) runs of the true shape's
+hypothesis disagree about its log evidence (the *island gap*, from the cached posteriors): the
+Monte Carlo error of the evidence that decides the shape, beside the error that tempering alone
+would leave (about sqrt(T / N) nats for T temperatures of N particles), split into the train
+images (those the concept spread was fitted on) and the test images. The episodes are re-drawn from the data set as evaluation draws them
 by default (seed 0, one query per class), and every query is checked against them.
 
     python scripts/error_analysis.py data/fsclvr results/runs/fsclvr [--likelihood p3] [--top 15]
@@ -74,6 +78,41 @@ def main() -> None:
             these = [r for r in recovered if r["size_true"] == size]
             right = [100 * sum(r[f"{a}_true"] == r[f"{a}_decided"] for r in these) / len(these) for a in ATTRIBUTES]
             print(f"| {size} | {len(these)} | " + " | ".join(f"{v:.1f}%" for v in right) + " |")
+    island_gaps(dataset, args.run / "posteriors" / args.likelihood)
+
+
+def island_gaps(dataset, cache: Path) -> None:
+    """The island gap of the true shape's hypothesis per cached SMC posterior, train and test images apart."""
+    import numpy as np
+
+    from mitsuba_p3.shapes import SHAPES
+
+    by_split = collections.defaultdict(lambda: collections.defaultdict(list))
+    for file in sorted(cache.glob("*.npz")):
+        posterior = np.load(file)
+        if "particles_log_evidence" not in posterior.files:
+            continue                                    # an MH posterior: no runs to compare
+        shot = dataset.shots[int(file.stem)]
+        if shot.cls.shape not in SHAPES:
+            continue                                    # ood: no true primitive
+        index, evidence = posterior["particles_index"], posterior["particles_log_evidence"]
+        mine = evidence[index == SHAPES.index(shot.cls.shape)]
+        if len(mine) < 2:
+            continue
+        row = by_split[shot.split]
+        row["gap"].append(float(np.ptp(mine)))
+        particles = posterior["particles_position"].shape[1]
+        row["tempering"].append(float(np.sqrt(posterior["particles_temperatures"] / particles)))
+        row["right"].append(int(posterior["kappa"]) == SHAPES.index(shot.cls.shape))     # the decided shape
+    if not by_split:
+        return
+    print("\n| images | runs' log evidence of the true shape: gap median / p90 (nats) | gap > 10 nats "
+          "| sqrt(T / N), median | shape wrong, gap <= 10 / > 10 |\n|---|---|---|---|---|")
+    for split, row in sorted(by_split.items()):
+        gap, right = np.array(row["gap"]), np.array(row["right"])
+        wrong = [f"{100 * np.mean(~right[m]):.1f}%" if m.any() else "-" for m in (gap <= 10, gap > 10)]
+        print(f"| {split} ({len(gap)}) | {np.median(gap):.1f} / {np.percentile(gap, 90):.1f} | "
+              f"{100 * np.mean(gap > 10):.1f}% | {np.median(row['tempering']):.2f} | {' / '.join(wrong)} |")
 
 
 if __name__ == "__main__":

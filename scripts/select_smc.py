@@ -10,6 +10,11 @@ model's fitted Gaussian noise with each setting of ``--configs`` (a JSON object:
 - ``mean_log_z_true``: the mean log evidence of the true shape's hypothesis. The evidence
   estimate is biased low when the runs miss the object's pose, so on the same images a
   higher value means a better search;
+- ``island_gap``: median and 90th percentile over images of the spread (highest minus lowest)
+  of the true shape's runs' log evidence estimates (``islands`` >= 2): the Monte Carlo error of
+  one run's evidence, measured within the run. Tempering noise alone (ESS-chosen steps, N
+  particles, T temperatures) would give about sqrt(T / N) nats; much more means the runs found
+  different poses;
 - ``material``: the share of images whose modal shape's run puts most of its particles on
   the right side of the prior's shiny threshold (metal: shiny), a proxy for the learnt rule;
 - ``seconds``: median and mean wall-clock seconds per image (each setting compiled first).
@@ -33,7 +38,8 @@ from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.fit.model import FittedModel
 from mitsuba_p3.infer.model import PosteriorCore
 from mitsuba_p3.infer.posterior import default_likelihood
-from mitsuba_p3.infer.smc import SMCConfig, sample_smc, shape_weights
+from mitsuba_p3.infer.smc import SMCConfig, hypotheses_of, sample_smc, shape_weights
+from mitsuba_p3.shapes import SHAPES
 
 
 def main() -> None:
@@ -57,7 +63,8 @@ def main() -> None:
         sample_smc(core, core.observe(dataset.image(shots[0])), replace(config, max_temperatures=2))
     report = {"dataset": args.dataset, "images": len(shots), "noise": args.noise, "size": args.size}
     for name, config in configs.items():
-        right, log_true, z_true, seconds, material = [], [], [], [], []
+        space = hypotheses_of(core.prior, config.kinds)
+        right, log_true, z_true, seconds, material, gap = [], [], [], [], [], []
         for i, shot in enumerate(shots):
             start = time.perf_counter()
             run = sample_smc(core, core.observe(dataset.image(shot)), config)
@@ -70,11 +77,16 @@ def main() -> None:
             log_true.append(float(np.log(max(weights[shot.cls.shape], 1e-12))))
             z_true.append(max(v["log_evidence"] for h, v in run.statistics["hypotheses"].items()
                               if h.split("/")[0] == shot.cls.shape))
+            rows = run.particles.rows
+            mine = rows.log_evidence[[SHAPES[c] == shot.cls.shape for c in space.classes[rows.index]]]
+            gap.append(float(np.ptp(mine)) if len(mine) > 1 else np.nan)
             print(f"{name} {i + 1}/{len(shots)} {shot.class_name}: {'ok' if right[-1] else 'WRONG'} "
-                  f"{seconds[-1]:.1f} s", flush=True)
+                  f"{seconds[-1]:.1f} s, island gap {gap[-1]:.1f}", flush=True)
         report[name] = {"shape": float(np.mean(right)), "material": float(np.mean(material)),
                         "log_p_true": float(np.mean(log_true)),
                         "mean_log_z_true": float(np.mean(z_true)),
+                        "island_gap": {"median": float(np.nanmedian(gap)), "p90": float(np.nanpercentile(gap, 90))}
+                        if not np.all(np.isnan(gap)) else None,
                         "seconds": {"median": float(np.median(seconds)), "mean": float(np.mean(seconds))},
                         "config": {k: v for k, v in vars(config).items() if v != getattr(SMCConfig(), k)}}
     print(json.dumps(report, indent=2))
