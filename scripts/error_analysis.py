@@ -10,8 +10,9 @@ dozen pixels. Last, for an SMC run, how far each image's two (or more) runs of t
 hypothesis disagree about its log evidence (the *island gap*, from the cached posteriors): the
 Monte Carlo error of the evidence that decides the shape, beside the error that tempering alone
 would leave (about sqrt(T / N) nats for T temperatures of N particles), split into the train
-images (those the concept spread was fitted on) and the test images. The episodes are re-drawn from the data set as evaluation draws them
-by default (seed 0, one query per class), and every query is checked against them.
+images (those the concept spread was fitted on) and the test images. The episodes are re-drawn
+from the data set as evaluation draws them by default (seed 0, one query per class), and every
+query is checked against them.
 
     python scripts/error_analysis.py data/fsclvr results/runs/fsclvr [--likelihood p3] [--top 15]
 """

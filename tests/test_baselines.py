@@ -113,34 +113,40 @@ def test_cli_trains_and_evaluates_on_a_benchmark(tmp_path):
 
 
 def test_status_reads_where_training_is_and_only_the_kept_networks_score(tmp_path):
-    """``baseline status``: a stopped and an unfinished training, read from their checkpoints; a score
-    counts only if it was made from the checkpoint's kept network (a stale one is not shown)."""
+    """``baseline status``: a stopped, a capped and an unfinished training, read from their checkpoints;
+    a score counts only if it was made from the checkpoint's kept network (a stale one is not shown)."""
     import json
+    from dataclasses import asdict
 
     from mitsuba_p3.baselines.status import status_of, status_table, training_folders
+    from mitsuba_p3.baselines.train import since_best
 
-    images = _synthetic(0, 18)
-    frozen = TrainConfig(method="protonets", resolution=RES, iterations=50, train_ways=(5,), checkpoint_every=2,
-                         validation_classes=6, validation_episodes=6, patience=2, learning_rate=1e-12)
-    meta_train(images, tmp_path / "trained" / f"fsclvr-protonets-{RES}", frozen)
-    meta_train(images, tmp_path / "trained" / f"room-protonets-{RES}", TrainConfig(**{**frozen.__dict__,
-                                                                                      "iterations": 2}))
+    config = TrainConfig(method="protonets", resolution=RES, iterations=600, patience=2)
+    for name, iteration, validation, stopped in (("fsclvr", 400, [0.5, 0.7, 0.6, 0.65], True),
+                                                 ("room", 600, [0.5, 0.6], False), ("dark", 300, [0.4, 0.3], False)):
+        checked = [(100 * (i + 1), v) for i, v in enumerate(validation)]
+        best = max(checked, key=lambda c: c[1])[0]
+        Checkpoint(asdict(config), iteration, {}, {}, {}, validation=checked, best_params={}, best_iteration=best,
+                   stopped=stopped).save(tmp_path / "trained" / f"{name}-protonets-{RES}")
     (tmp_path / "trained" / "notes").mkdir()
     folders = training_folders([tmp_path / "trained"])
-    assert [f.name for f in folders] == [f"fsclvr-protonets-{RES}", f"room-protonets-{RES}"]
+    assert [f.name for f in folders] == [f"{v}-protonets-{RES}" for v in ("dark", "fsclvr", "room")]
 
     def score(target, kept):
         path = tmp_path / "runs" / target / "baselines" / f"protonets-{RES}.json"
         path.parent.mkdir(parents=True)
         path.write_text(json.dumps({"kept_iteration": kept, "accuracy": {"5-way 1-shot": {"mean": 0.5}}}))
 
-    score("fsclvr", 2)
-    score("ood", 4)                                                      # an earlier kept network's: stale
-    stopped, capped = (status_of(f, tmp_path / "runs") for f in folders)
-    assert (stopped.state, stopped.iterations, stopped.kept) == ("early-stopped", 6, 2)
+    score("fsclvr", 200)
+    score("ood", 100)                                                    # an earlier kept network's: stale
+    unfinished, stopped, capped = (status_of(f, tmp_path / "runs") for f in folders)
+    assert (stopped.state, stopped.iterations, stopped.kept) == ("early-stopped", 400, 200)
+    assert stopped.best_validation == 0.7
     assert stopped.scores == {"fsclvr": {"5-way 1-shot": 50.0}}
-    assert (capped.state, capped.iterations, capped.scores) == ("at its cap", 2, {})
-    table = status_table([stopped, capped])
-    assert "| fsclvr 50.0 / - / - / - |" in table and "not scored" in table
+    assert (capped.state, capped.scores) == ("at its cap", {})
+    assert unfinished.state == "training" and unfinished.checkpoints_since_best == 1 == since_best(Checkpoint.load(
+        folders[0]))
+    table = status_table([unfinished, stopped, capped])
+    assert "| fsclvr 50.0 / - / - / - |" in table and "training (1 of 2 checkpoints since the best)" in table
     with pytest.raises(BaselineError, match="no baseline checkpoint"):
         training_folders([tmp_path / "trained" / "notes"])
