@@ -118,7 +118,7 @@ def test_status_reads_where_training_is_and_only_the_kept_networks_score(tmp_pat
     import json
     from dataclasses import asdict
 
-    from mitsuba_p3.baselines.status import status_of, status_table, training_folders
+    from mitsuba_p3.baselines.status import status_of, status_table, training_folders, validation_figure
     from mitsuba_p3.baselines.train import since_best
 
     config = TrainConfig(method="protonets", resolution=RES, iterations=600, patience=2)
@@ -150,3 +150,4 @@ def test_status_reads_where_training_is_and_only_the_kept_networks_score(tmp_pat
     assert "| fsclvr 50.0 / - / - / - |" in table and "training (1 of 2 checkpoints since the best)" in table
     with pytest.raises(BaselineError, match="no baseline checkpoint"):
         training_folders([tmp_path / "trained" / "notes"])
+    assert validation_figure([unfinished, stopped, capped], tmp_path / "validation.png").stat().st_size > 0

@@ -5,7 +5,9 @@ resumes its checkpoint), so the question "where is it?" comes back each session.
 the folder: the checkpoint says the iterations done, the validation accuracy at every checkpoint,
 the kept (best) iteration and whether training stopped; a score file, if the kept network has been
 scored, says its test accuracy. :func:`status_table` writes the rows as the markdown table the
-results pages show, so that table is made by a command, not by hand.
+results pages show, so that table is made by a command, not by hand, and :func:`validation_figure`
+draws every baseline's validation accuracy against its iterations in one figure (each folder's
+``learning_curve.png`` has its own, with the training loss).
 
 Scores are looked up in the folder's ``scores.json`` and, with ``runs``, in
 ``RUNS/V/baselines/METHOD-R.json`` (where ``train_baselines.py`` writes them; V is the folder's name
@@ -34,6 +36,7 @@ class Status(NamedTuple):
     checkpoints_since_best: int
     patience: int
     scores: dict                   # test benchmark -> {setting: accuracy in %}
+    validation: list               # (iteration, validation accuracy) per checkpoint
 
 
 def training_folders(paths: list[Path]) -> list[Path]:
@@ -72,7 +75,7 @@ def status_of(folder: Path, runs: Path | None = None) -> Status:
                 scores[target] = {k: round(100 * v["mean"], 1) for k, v in record["accuracy"].items()}
                 break
     return Status(folder.name, where, state.iteration, state.kept_iteration, state.best_validation,
-                  since_best(state), config.patience, scores)
+                  since_best(state), config.patience, scores, list(state.validation))
 
 
 def status_table(rows: list[Status]) -> str:
@@ -87,3 +90,30 @@ def status_table(rows: list[Status]) -> str:
                            for target, scores in row.scores.items()) or "not scored"
         lines.append(f"| `{row.name}` | {state} | {row.iterations} | {best} | {scored} |")
     return "\n".join(lines)
+
+
+def validation_figure(rows: list[Status], path: Path) -> Path:
+    """Every baseline's validation accuracy per checkpoint, one line each (colour: benchmark, dashes:
+    84 px, marker: method), the kept checkpoint circled and a stopped run's last point crossed."""
+    import matplotlib.pyplot as plt
+
+    from ..plots import save_figure
+
+    figure, ax = plt.subplots(figsize=(8, 4))
+    benchmarks = sorted({row.name.split("-")[0] for row in rows})
+    for row in rows:
+        if not row.validation:
+            continue
+        iterations, accuracy = zip(*row.validation)
+        colour = f"C{benchmarks.index(row.name.split('-')[0])}"
+        ax.plot(iterations, accuracy, ls="--" if row.name.endswith("-84") else "-", color=colour, lw=1.2,
+                marker="s" if "-maml-" in row.name else "o", ms=2.5, label=row.name)
+        ax.plot([row.kept], [dict(row.validation)[row.kept]], "o", ms=9, mfc="none", color=colour)
+        if row.state == "early-stopped":
+            ax.plot(iterations[-1:], accuracy[-1:], "x", ms=7, color=colour)
+    ax.set_xlabel("meta-training iteration")
+    ax.set_ylabel("accuracy on held-out train classes")
+    ax.set_title("Baselines: validation accuracy (circle: kept, cross: early-stopped)")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    ax.grid(alpha=0.3)
+    return save_figure(figure, path)

@@ -73,9 +73,13 @@ def baseline_status(
     trained: list[Path] = typer.Argument(..., help="Training folders, or folders of them (e.g. results/baselines)."),
     runs: Optional[Path] = typer.Option(None, help="The reproduction's run folders (OUT/runs), where "
                                         "train_baselines.py writes the test scores."),
+    figure: Optional[Path] = typer.Option(None, help="Also draw every baseline's validation curve in one PNG."),
 ) -> None:
     """Where each baseline's training is (iterations, kept iteration, best validation accuracy, early
     stopped or not) and, once scored, its test accuracy: a markdown table from the checkpoints."""
-    from ..baselines.status import status_of, status_table, training_folders
+    from ..baselines.status import status_of, status_table, training_folders, validation_figure
 
-    typer.echo(status_table([status_of(folder, runs) for folder in training_folders(trained)]))
+    rows = [status_of(folder, runs) for folder in training_folders(trained)]
+    typer.echo(status_table(rows))
+    if figure is not None:
+        typer.echo(f"validation curves: {validation_figure(rows, figure)}")
