@@ -44,9 +44,9 @@ def progress_bar(description: str, log_every: float = LOG_EVERY):
     """A rich progress bar on stderr; returns (context manager, callback(done, total)).
 
     On a terminal the bar redraws itself. Written to a file (``nohup ... 2> run.log``) a live bar
-    shows nothing until it stops, so there the callback also writes a plain line, at most every
-    ``log_every`` seconds and when the work is done: what, how far, for how long, and the time left
-    at the rate so far."""
+    would show nothing until it stops and then leave its last frame, before any error line; there
+    the bar is off and the callback writes plain lines instead, at most every ``log_every`` seconds
+    and when the work is done: what, how far, for how long, and the time left at the rate so far."""
     import sys
     import time
 
@@ -56,7 +56,7 @@ def progress_bar(description: str, log_every: float = LOG_EVERY):
 
     console = Console(stderr=True)
     bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                   TimeElapsedColumn(), TimeRemainingColumn(), transient=False, console=console)
+                   TimeElapsedColumn(), TimeRemainingColumn(), console=console, disable=not console.is_terminal)
     task = bar.add_task(description, total=None)
     # the line's clock: since the last line, and since the current description (a phase) began
     clock = {"line": time.monotonic(), "phase": time.monotonic(), "name": description}
