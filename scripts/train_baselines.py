@@ -27,7 +27,8 @@ import argparse
 import json
 from pathlib import Path
 
-from mitsuba_p3.baselines.train import DEFAULT_ITERATIONS, Checkpoint, TrainConfig, evaluate_baseline, train_baseline
+from mitsuba_p3.baselines.train import (DEFAULT_ITERATIONS, Checkpoint, TrainConfig, evaluate_baseline,
+                                        score_file, scored_benchmarks, train_baseline)
 from mitsuba_p3.cli.app import progress_bar
 from mitsuba_p3.files import atomic_json
 
@@ -61,9 +62,8 @@ def main() -> None:
                 with bar:
                     state = train_baseline(args.data / benchmark, trained, config, progress=update)
                 scored = {}
-                targets = [benchmark] + (["ood"] if benchmark == "fsclvr" and (args.data / "ood").is_dir() else [])
-                for target in targets:
-                    result_file = args.out / "runs" / target / "baselines" / f"{method}-{resolution}.json"
+                for target in [t for t in scored_benchmarks(benchmark) if (args.data / t).is_dir()]:
+                    result_file = score_file(args.out / "runs" / target, config)
                     if args.rescore or not result_file.exists() or _scored_before(result_file, state):
                         evaluate_baseline(trained, args.data / target, args.out / "runs" / target, args.episodes)
                     result = json.loads(result_file.read_text())

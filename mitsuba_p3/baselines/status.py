@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from ..errors import BaselineError
-from .train import Checkpoint, TrainConfig, since_best
+from .train import Checkpoint, TrainConfig, score_file, scored_benchmarks, since_best
 
 SETTINGS = ("5-way 1-shot", "5-way 5-shot", "10-way 1-shot", "10-way 5-shot")
 
@@ -63,10 +63,8 @@ def status_of(folder: Path, runs: Path | None = None) -> Status:
     benchmark = folder.name[:-len(suffix)] if folder.name.endswith(suffix) else folder.name
     files = {benchmark: [folder / "scores.json"]}
     if runs is not None:
-        # train_baselines.py scores each network on its own benchmark, and fsclvr's on ood too
-        for target in [benchmark] + (["ood"] if benchmark == "fsclvr" else []):
-            score = Path(runs) / target / "baselines" / f"{config.method}-{config.resolution}.json"
-            files.setdefault(target, []).append(score)
+        for target in scored_benchmarks(benchmark):
+            files.setdefault(target, []).append(score_file(Path(runs) / target, config))
     scores = {}
     for target, candidates in files.items():
         for file in candidates:

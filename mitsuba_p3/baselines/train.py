@@ -303,6 +303,17 @@ def learning_curve(out: Path, curve: list, label: str, validation: list = (), be
     return save_figure(figure, out / "learning_curve.png")
 
 
+def score_file(run_dir: str | Path, config: TrainConfig) -> Path:
+    """Where a baseline's test score goes in an evaluation run folder (the accuracy tables read it)."""
+    return Path(run_dir) / "baselines" / f"{config.method}-{config.resolution}.json"
+
+
+def scored_benchmarks(benchmark: str) -> list[str]:
+    """The benchmarks a network trained on ``benchmark`` is scored on: its own, and ood for fsclvr's
+    (ood has no train classes of its own; the paper scores fsclvr's networks there)."""
+    return [benchmark] + (["ood"] if benchmark == "fsclvr" else [])
+
+
 def episode_accuracy(predict, params, support, k_shot: int, queries, truth, n_way: int) -> float:
     """Query accuracy of one episode (support ordered class by class, K shots each)."""
     probabilities = np.asarray(predict(params, support, np.repeat(np.arange(n_way), k_shot), queries, n_way))
@@ -344,6 +355,5 @@ def evaluate_baseline(model_dir: str | Path, dataset_dir: str | Path, run_dir: s
     result = {"model": config.label, "trained": state.config, "iterations": state.iteration,
               "kept_iteration": state.kept_iteration,
               "early_stopped": state.stopped, "accuracy": accuracy}
-    target = Path(run_dir) / "baselines" / f"{config.method}-{config.resolution}.json"
-    atomic_json(target, result)
+    atomic_json(score_file(run_dir, config), result)
     return result
