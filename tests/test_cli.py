@@ -104,4 +104,22 @@ def test_progress_goes_to_stderr_with_plain_lines_in_a_log(capsys):
     lines = err.splitlines()                                  # nothing but the plain lines: no bar frames
     assert [line.split(" after ")[0] for line in lines] == [
         "fsclvr: fit: 4/4", "fsclvr: posteriors p3: 4/4", "train: 1/3", "train: 2/3", "train: 3/3"]
-    assert "left" in lines[2] and "left" not in lines[4]
+    assert "left" not in lines[2] and "left" in lines[3] and "left" not in lines[4]  # a rate needs two reports
+
+
+def test_time_left_of_a_resumed_run_counts_only_its_own_work(capsys, monkeypatch):
+    """A training resumed at iteration 100 of 200 that then does 10 iterations a minute has 9 minutes
+    left, not the 1.6 that counting the first 100 as this run's work would give."""
+    import time
+
+    from mitsuba_p3.cli.app import progress_bar
+
+    now = [0.0]
+    monkeypatch.setattr(time, "monotonic", lambda: now[0])
+    bar, update = progress_bar("train", log_every=0.0)
+    with bar:
+        for done in (100, 110):
+            now[0] += 60.0
+            update(done, 200)
+    lines = capsys.readouterr().err.splitlines()
+    assert lines == ["train: 100/200 after 1.0 min", "train: 110/200 after 2.0 min, about 9.0 min left"]

@@ -58,19 +58,24 @@ def progress_bar(description: str, log_every: float = LOG_EVERY):
     bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                    TimeElapsedColumn(), TimeRemainingColumn(), console=console, disable=not console.is_terminal)
     task = bar.add_task(description, total=None)
-    # the line's clock: since the last line, and since the current description (a phase) began
-    clock = {"line": time.monotonic(), "phase": time.monotonic(), "name": description}
+    # the line's clock: since the last line, and since the current description (a phase) began; the
+    # rate counts from the phase's first report, since a resumed run's first report is part-way
+    clock = {"line": time.monotonic(), "phase": time.monotonic(), "name": description, "first": None}
 
     def update(done: int, total: int) -> None:
         bar.update(task, completed=done, total=total)
         now, name = time.monotonic(), bar.tasks[0].description
         if name != clock["name"]:
-            clock.update(phase=now, name=name)
+            clock.update(phase=now, name=name, first=None)
+        if clock["first"] is None:
+            clock["first"] = (now, done)
         if console.is_terminal or not (now - clock["line"] >= log_every or (total and done >= total)):
             return
         clock["line"] = now
         spent = now - clock["phase"]
-        left = f", about {_minutes(spent * (total - done) / done)} left" if done and total and done < total else ""
+        since, done_then = clock["first"]
+        rate = (done - done_then) / (now - since) if now > since else 0.0
+        left = f", about {_minutes((total - done) / rate)} left" if rate > 0 and total and done < total else ""
         print(f"{name}: {done}/{total or '?'} after {_minutes(spent)}{left}", file=sys.stderr, flush=True)
 
     return bar, update
