@@ -5,8 +5,8 @@ benchmarks' objects sit anywhere within +-8 cm of the centre, so a finer map tel
 *where* an object is and a squared distance between flattened embeddings weighs position beside
 appearance. This probe scores, on a benchmark's validation classes (the train classes that
 early stopping holds out; the same fixed episodes), untrained networks (three seeds) with the
-flattened embedding and with a global average pool over the last map (translation-invariant),
-and the kept network of each ProtoNets training found in ``--baselines``. A second table asks
+flattened embedding and with a global average pool over the last map (which forgets where in the
+map a feature was), and the kept network of each ProtoNets training found in ``--baselines``. A second table asks
 the question directly: between two images of one validation class (same look, different place),
 how well the distance of their embeddings follows the distance of the objects on the floor
 (Spearman's rank correlation over a class's pairs, averaged over classes; 0 for an embedding
@@ -34,22 +34,11 @@ from mitsuba_p3.benchmarks.dataset import load_dataset
 class PooledProtoNets(ProtoNets):
     """ProtoNets on the last feature map's average over positions (64 numbers at any resolution)."""
 
-    def logits(self, params, support, labels, queries, n_way: int):
-        x = jnp.concatenate([support, queries]) - 0.5
+    def embed(self, params, images):
+        x = images - 0.5
         for p in params["backbone"]:
             x = conv4.block(p, x)
-        embedded = x.mean(axis=(1, 2))
-        s, q = embedded[:len(support)], embedded[len(support):]
-        one_hot = jax.nn.one_hot(labels, n_way)
-        prototypes = one_hot.T @ s / one_hot.sum(axis=0)[:, None]
-        return -(jnp.sum(q * q, axis=1)[:, None] - 2.0 * q @ prototypes.T + jnp.sum(prototypes ** 2, axis=1)[None])
-
-
-def pooled_embed(params, images):
-    x = images - 0.5
-    for p in params["backbone"]:
-        x = conv4.block(p, x)
-    return x.mean(axis=(1, 2))
+        return x.mean(axis=(1, 2))
 
 
 def place_correlation(embed, params, held: dict, positions: dict) -> float:
@@ -77,8 +66,6 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=3)
     args = parser.parse_args()
     defaults = TrainConfig()
-    flat = jax.jit(lambda params, images: conv4.embed(params["backbone"], images))
-    pooled = jax.jit(pooled_embed)
     accuracy, place = [], []
     for benchmark in args.benchmarks.split(","):
         dataset = load_dataset(args.data / benchmark)
@@ -88,19 +75,21 @@ def main() -> None:
             positions = {name: [shot.position for shot in dataset.shots_of(name)] for name in held}
             tasks = validation_tasks(held, defaults.validation_episodes, defaults.seed)
             scores, correlations = [], []
-            for model, embed in ((ProtoNets(), flat), (PooledProtoNets(), pooled)):
+            for model in (ProtoNets(), PooledProtoNets()):
                 predict = jax.jit(model.predict, static_argnums=4)
                 inits = [model.init(jax.random.PRNGKey(s), resolution) for s in range(args.seeds)]
                 values = [validation_accuracy(predict, params, tasks) for params in inits]
                 scores.append(f"{np.mean(values):.3f} ({min(values):.3f}-{max(values):.3f})")
+                embed = jax.jit(model.embed)
                 correlations.append(f"{np.mean([place_correlation(embed, p, held, positions) for p in inits]):+.2f}")
             folder = args.baselines / f"{benchmark}-protonets-{resolution}"
             if (folder / "checkpoint.pkl").exists():
                 state = Checkpoint.load(folder)
-                predict = jax.jit(ProtoNets().predict, static_argnums=4)
+                model = ProtoNets()
+                predict = jax.jit(model.predict, static_argnums=4)
                 scores.append(f"{validation_accuracy(predict, state.final_params, tasks):.3f} "
                               f"(iteration {state.kept_iteration})")
-                correlations.append(f"{place_correlation(flat, state.final_params, held, positions):+.2f}")
+                correlations.append(f"{place_correlation(jax.jit(model.embed), state.final_params, held, positions):+.2f}")
             else:
                 scores.append("not trained")
                 correlations.append("not trained")

@@ -236,3 +236,25 @@ def test_only_the_headline_run_writes_the_benchmarks_posterior_figure():
     assert tables.posterior_figure_name("room", None) == "posterior-room-paper.png"
     assert tables.posterior_figure_name("dark", 0.35) == "posterior-dark-sigma0.35.png"
     assert tables.posterior_figure_name("ood", "robust") == "posterior-ood-robust.png"
+
+
+def test_pooling_probe_place_correlation_sees_place_and_only_place():
+    """scripts/probe_baseline_pooling.py: an embedding that is where the object stands correlates 1
+    with the floor distance; one that does not see the place is not ordered by it. Images are
+    embedded in one batch, so classes come back in the order they went in."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "probe_baseline_pooling.py"
+    spec = importlib.util.spec_from_file_location("probe_baseline_pooling", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    rng = np.random.default_rng(0)
+    positions = {name: [np.array([*rng.uniform(-0.08, 0.08, 2), 0.0]) for _ in range(6)] for name in "ab"}
+    # each "image" carries its object's (x, y) in its first two pixels and noise elsewhere
+    held = {name: np.stack([np.pad(p[:2], (0, 6)) + [0, 0, *rng.random(6)] for p in positions[name]])
+            for name in "ab"}
+    where = lambda params, images: images[:, :2]           # noqa: E731
+    look = lambda params, images: images[:, 2:]            # noqa: E731
+    assert script.place_correlation(where, None, held, positions) == pytest.approx(1.0)
+    assert abs(script.place_correlation(look, None, held, positions)) < 0.5

@@ -42,8 +42,12 @@ class ProtoNets:
     def init(self, key, resolution: int):
         return {"backbone": conv4.init_params(key)}
 
+    def embed(self, params, images):
+        """(B, R, R, 3) images -> (B, F) embeddings: the Conv-4's flattened last map."""
+        return conv4.embed(params["backbone"], images)
+
     def logits(self, params, support, labels, queries, n_way: int):
-        embedded = conv4.embed(params["backbone"], jnp.concatenate([support, queries]))
+        embedded = self.embed(params, jnp.concatenate([support, queries]))
         s, q = embedded[:len(support)], embedded[len(support):]
         one_hot = jax.nn.one_hot(labels, n_way)
         prototypes = one_hot.T @ s / one_hot.sum(axis=0)[:, None]
