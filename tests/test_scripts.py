@@ -12,6 +12,18 @@ from mitsuba_p3.concepts import CONTINUOUS, DistanceConfig, ProtoProgram
 from mitsuba_p3.evaluate import held_out_accuracy
 
 
+def load_script(name: str):
+    """A script of ``scripts/`` imported as a module (its ``main`` is not run)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def program(rng, centre: float, spread: float, n: int = 200) -> ProtoProgram:
     samples = {name: centre + spread * rng.standard_normal((n, 3 if name in ("scale", "colour") else 1))
                for name in CONTINUOUS}
@@ -141,13 +153,7 @@ def test_train_baselines_trains_scores_and_resumes(tmp_path):
 def test_probe_resolution_reads_only_the_rendered_train_images(tmp_path):
     """scripts/probe_resolution.py's view of a benchmark still rendering: the train images on disk,
     with their labels; test images and missing train images left out, the scene file kept."""
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / "probe_resolution.py"
-    spec = importlib.util.spec_from_file_location("probe_resolution", path)
-    probe = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(probe)
+    probe = load_script("probe_resolution")
     root = tmp_path / "bench"
     records = [{"file": f"{split}/c/{i}.png", "split": split} for split in ("train", "test") for i in range(3)]
     (root / "train" / "c").mkdir(parents=True)
@@ -184,13 +190,7 @@ def test_object_box_frames_what_the_object_changes():
 def test_compare_reproductions_reads_two_output_folders(tmp_path, capsys):
     """scripts/compare_reproductions.py: the cells both folders hold, their difference in points, the
     share of images whose decided attributes agree, both ADIs; a folder without tables is refused."""
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / "compare_reproductions.py"
-    spec = importlib.util.spec_from_file_location("compare_reproductions", path)
-    compare = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(compare)
+    compare = load_script("compare_reproductions")
     head = "benchmark,model,sigma,distance,setting,accuracy,half_width_95,ece,paper\n"
     attributes_head = "model,query,shape_decided,material_decided,size_decided,colour_decided\n"
     for name, accuracy, shape in (("a", 0.90, "cube"), ("b", 0.88, "sphere")):
@@ -215,14 +215,9 @@ def test_compare_reproductions_reads_two_output_folders(tmp_path, capsys):
 def test_select_np3_start_takes_train_images_round_robin_over_classes():
     """scripts/select_np3_start.py's images: train shots only, first shots of every class before any
     second shot, as many as asked (or all there are)."""
-    import importlib.util
-    from pathlib import Path
     from types import SimpleNamespace
 
-    path = Path(__file__).resolve().parents[1] / "scripts" / "select_np3_start.py"
-    spec = importlib.util.spec_from_file_location("select_np3_start", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = load_script("select_np3_start")
     shots = [SimpleNamespace(index=i, cls=c, split="train") for i, c in enumerate("aabbbc")]
     dataset = SimpleNamespace(split=lambda name: shots if name == "train" else [])
     assert [s.index for s in script.train_images(dataset, 4)] == [0, 2, 5, 1]
@@ -242,13 +237,7 @@ def test_pooling_probe_place_correlation_sees_place_and_only_place():
     """scripts/probe_baseline_pooling.py: an embedding that is where the object stands correlates 1
     with the floor distance; one that does not see the place is not ordered by it. Images are
     embedded in one batch, so classes come back in the order they went in."""
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / "probe_baseline_pooling.py"
-    spec = importlib.util.spec_from_file_location("probe_baseline_pooling", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = load_script("probe_baseline_pooling")
     rng = np.random.default_rng(0)
     positions = {name: [np.array([*rng.uniform(-0.08, 0.08, 2), 0.0]) for _ in range(6)] for name in "ab"}
     # each "image" carries its object's (x, y) in its first two pixels and noise elsewhere
