@@ -35,10 +35,7 @@ class PooledProtoNets(ProtoNets):
     """ProtoNets on the last feature map's average over positions (64 numbers at any resolution)."""
 
     def embed(self, params, images):
-        x = images - 0.5
-        for p in params["backbone"]:
-            x = conv4.block(p, x)
-        return x.mean(axis=(1, 2))
+        return conv4.feature_map(params["backbone"], images).mean(axis=(1, 2))
 
 
 def place_correlation(embed, params, held: dict, positions: dict) -> float:
@@ -66,6 +63,9 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=3)
     args = parser.parse_args()
     defaults = TrainConfig()
+    flattened, pooled = ProtoNets(), PooledProtoNets()
+    # compiled once, for every benchmark (one compilation per input shape)
+    compiled = {model: (jax.jit(model.predict, static_argnums=4), jax.jit(model.embed)) for model in (flattened, pooled)}
     accuracy, place = [], []
     for benchmark in args.benchmarks.split(","):
         dataset = load_dataset(args.data / benchmark)
@@ -75,21 +75,18 @@ def main() -> None:
             positions = {name: [shot.position for shot in dataset.shots_of(name)] for name in held}
             tasks = validation_tasks(held, defaults.validation_episodes, defaults.seed)
             scores, correlations = [], []
-            for model in (ProtoNets(), PooledProtoNets()):
-                predict = jax.jit(model.predict, static_argnums=4)
+            for model, (predict, embed) in compiled.items():
                 inits = [model.init(jax.random.PRNGKey(s), resolution) for s in range(args.seeds)]
                 values = [validation_accuracy(predict, params, tasks) for params in inits]
                 scores.append(f"{np.mean(values):.3f} ({min(values):.3f}-{max(values):.3f})")
-                embed = jax.jit(model.embed)
                 correlations.append(f"{np.mean([place_correlation(embed, p, held, positions) for p in inits]):+.2f}")
             folder = args.baselines / f"{benchmark}-protonets-{resolution}"
             if (folder / "checkpoint.pkl").exists():
                 state = Checkpoint.load(folder)
-                model = ProtoNets()
-                predict = jax.jit(model.predict, static_argnums=4)
+                predict, embed = compiled[flattened]
                 scores.append(f"{validation_accuracy(predict, state.final_params, tasks):.3f} "
                               f"(iteration {state.kept_iteration})")
-                correlations.append(f"{place_correlation(jax.jit(model.embed), state.final_params, held, positions):+.2f}")
+                correlations.append(f"{place_correlation(embed, state.final_params, held, positions):+.2f}")
             else:
                 scores.append("not trained")
                 correlations.append("not trained")
@@ -99,6 +96,7 @@ def main() -> None:
     print("Validation accuracy (held-out train classes):\n\n" + header + "\n" + "\n".join(accuracy))
     print("\nRank correlation of embedding distance with floor distance, within a class:\n\n"
           + header + "\n" + "\n".join(place))
+
 
 if __name__ == "__main__":
     main()

@@ -38,11 +38,17 @@ def block(p: dict, x):
     return jax.lax.reduce_window(x, -jnp.inf, jax.lax.max, (1, 2, 2, 1), (1, 2, 2, 1), "VALID")
 
 
-def embed(params: list[dict], images):
-    """(B, H, W, 3) images in [0, 1] -> (B, features) embeddings (flattened last block)."""
+def feature_map(params: list[dict], images):
+    """(B, H, W, 3) images in [0, 1] -> (B, h, w, filters): the last block's map."""
     x = images - 0.5
     for p in params:
         x = block(p, x)
+    return x
+
+
+def embed(params: list[dict], images):
+    """(B, H, W, 3) images in [0, 1] -> (B, features) embeddings (flattened last block)."""
+    x = feature_map(params, images)
     return x.reshape(x.shape[0], -1)
 
 
