@@ -23,6 +23,28 @@ def _synthetic(seed: int, classes: int, shots: int = 6) -> dict[str, np.ndarray]
     return out
 
 
+@pytest.mark.parametrize("side", [8, 11])
+def test_max_pool_matches_reduce_window_in_value_and_gradient(side):
+    """The backbone's reshape max-pool is XLA's 2x2 VALID reduce_window (an odd edge dropped), and
+    after ReLU their gradients agree too (ties only at 0, where ReLU passes none)."""
+    import jax
+    import jax.numpy as jnp
+
+    from mitsuba_p3.baselines.conv4 import max_pool2
+
+    def window(x):
+        return jax.lax.reduce_window(x, -jnp.inf, jax.lax.max, (1, 2, 2, 1), (1, 2, 2, 1), "VALID")
+
+    x = jax.random.normal(jax.random.PRNGKey(side), (2, side, side + 1, 4))
+    weights = jax.random.normal(jax.random.PRNGKey(1), window(x).shape)
+    assert max_pool2(x).shape == window(x).shape
+    np.testing.assert_array_equal(max_pool2(x), window(x))
+    ours, theirs = (jax.grad(lambda v, pool=pool: jnp.sum(pool(jax.nn.relu(v)) * weights))(x)
+                    for pool in (max_pool2, window))
+    np.testing.assert_allclose(ours, theirs, atol=1e-6)
+    assert np.count_nonzero(np.asarray(ours)) > 0
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("method, iterations", [("protonets", 60), ("maml", 60)])
 def test_baseline_learns_novel_classes_above_chance(method, iterations, tmp_path):
