@@ -27,7 +27,9 @@ to ``runs/V``, with another sigma to ``runs/V-sigmaS``; each gets its own rows. 
 distance scores the same posteriors and its tables go to
 ``runs/V/distance-TERMS`` (rows such as "NP3 (colour+class)"). Baselines
 evaluated into ``runs/V`` (``mitsuba-p3 baseline evaluate TRAINED data/V --out
-OUT/runs/V``) join the accuracy table.
+OUT/runs/V``) join the accuracy table. :func:`write_tables` (``mitsuba-p3 reproduce --tables-only``)
+writes the tables and figures again from the run folders alone, sampling nothing: after a baseline
+is scored, or in a folder of results copied without its posteriors.
 
 ``mitsuba-p3 reproduce`` and ``scripts/reproduce_tables.py`` call :func:`reproduce`.
 """
@@ -41,7 +43,7 @@ from pathlib import Path
 from typing import Callable
 
 from .benchmarks.protocol import VARIANTS
-from .errors import ConfigError
+from .errors import ConfigError, EvaluationError
 from .evaluate import SETTINGS, EvaluationConfig, evaluate, load_baselines, markdown_table, setting_name
 from .evaluate.run import sample_spread
 from .files import atomic_json, atomic_open, atomic_write
@@ -146,6 +148,17 @@ def reproduce(data: str | Path, out: str | Path, config: ReproduceConfig | None 
                     "figure_and_tables_minutes": round(reported, 2), "sampler": asdict(evaluation.sampler)})
         atomic_json(timing_log, log)
     return minutes
+
+
+def write_tables(out: str | Path) -> None:
+    """The paper's tables and figures from the evaluated runs and scored baselines already in
+    ``out/runs`` (:func:`collect`), generating, fitting and sampling nothing."""
+    out = Path(out)
+    found = collect(out)
+    if not found and not any(load_baselines(out / "runs" / c) for c in COLUMNS):
+        raise EvaluationError(f"{out} holds no evaluated run (runs/V/results.json) and no scored baseline "
+                              f"(runs/V/baselines/): nothing to tabulate")
+    write_paper_tables(out, found)
 
 
 def cells(result: dict) -> str:

@@ -59,15 +59,17 @@ def test_held_out_accuracy_k_shot_episodes_and_the_kl_direction():
         accuracy(5, "image||class", {**programs, "short": programs["c0"][:5]}, 1)
 
 
+def result(accuracy: float, adi: float) -> dict:
+    """An evaluation's results as a run's ``results.json`` holds them, every cell ``accuracy``."""
+    cell = {"mean": accuracy, "half_width": 0.01, "ece": 0.1, "reliability": [[0.55, accuracy, 10], [0.9, 0.8, 0]]}
+    return {"accuracy": {f"{n}-way {k}-shot": cell for n, k in tables.SETTINGS},
+            "adi": {"mean": adi, "median": adi}, "attributes": {"shape_accuracy": accuracy, "images": 3}}
+
+
 def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_path):
     for variant, sigma in (("fsclvr", None), ("dark", 0.1), ("ood", 0.05)):
         assert tables.parse_run_name(tables.run_name(variant, sigma)) == (variant, sigma)
     assert tables.parse_run_name("scratch") is None and tables.parse_run_name("fsclvr-sigmaX") is None
-
-    def result(accuracy: float, adi: float) -> dict:
-        cell = {"mean": accuracy, "half_width": 0.01, "ece": 0.1, "reliability": [[0.55, accuracy, 10], [0.9, 0.8, 0]]}
-        return {"accuracy": {f"{n}-way {k}-shot": cell for n, k in tables.SETTINGS},
-                "adi": {"mean": adi, "median": adi}, "attributes": {"shape_accuracy": accuracy, "images": 3}}
 
     for name, accuracy in (("fsclvr", 0.5), ("fsclvr-sigma0.1", 0.9), ("fsclvr/distance-colour+class", 0.7),
                            ("fsclvr-sigma0.1/distance-colour", 0.8), ("fsclvr/spread0", 0.6),
@@ -97,6 +99,31 @@ def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_
                for name in ("accuracy", "attributes", "reliability-fsclvr"))
     adi = (tmp_path / "adi.md").read_text()
     assert "P3 (sigma 0.1) mean ADI" in adi and "colour" not in adi  # ADI does not depend on the distance
+
+
+def test_tables_only_rewrites_the_tables_from_run_folders_and_refuses_a_folder_without_runs(tmp_path):
+    """``reproduce --tables-only``: the tables of a results folder copied without its posteriors, a baseline
+    scored since included; nothing to tabulate is one error line."""
+    import subprocess
+    import sys
+
+    (tmp_path / "runs" / "dark-fitted" / "baselines").mkdir(parents=True)
+    (tmp_path / "runs" / "dark-fitted" / "results.json").write_text(json.dumps({"results": {"p3": result(0.9, 0.01)}}))
+    (tmp_path / "runs" / "dark" / "baselines").mkdir(parents=True)
+    (tmp_path / "runs" / "dark" / "baselines" / "maml-84.json").write_text(
+        json.dumps({"model": "MAML 84", **result(0.7, 0.0)}))
+    command = [sys.executable, "-m", "mitsuba_p3.cli", "reproduce", "--tables-only", "--out"]
+    done = subprocess.run(command + [str(tmp_path)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    lines = (tmp_path / "accuracy.md").read_text().splitlines()
+    assert any(line.startswith("| P3 (fitted noise) | this project | - | - | 90.0/90.0/90.0/90.0 |") for line in lines)
+    assert any(line.startswith("| MAML 84 | this project | - | - | 70.0/70.0/70.0/70.0 |") for line in lines)
+    assert (tmp_path / "figures" / "accuracy.png").is_file() and (tmp_path / "adi.md").is_file()
+
+    (tmp_path / "empty").mkdir()
+    refused = subprocess.run(command + [str(tmp_path / "empty")], capture_output=True, text=True, timeout=300)
+    assert refused.returncode == 2 and refused.stderr.strip().startswith("error:") and "nothing to tabulate" in refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1 and not (tmp_path / "empty" / "accuracy.md").exists()
 
 
 @pytest.mark.parametrize("shift", [np.full((100, 2), 0.01), np.c_[np.linspace(0, 0.01, 100), np.zeros(100)],

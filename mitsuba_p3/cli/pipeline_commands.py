@@ -213,6 +213,8 @@ def reproduce(
     kl: str = typer.Option(DistanceConfig.direction, "--kl", help=KL_HELP),
     resolution: Optional[str] = typer.Option(None, help="HxW of benchmarks generated here (default: 480x640); "
                                                         "folders already made must match it."),
+    tables_only: bool = typer.Option(False, "--tables-only", help="Only write the tables and figures again from "
+                                     "the runs and scored baselines already in OUT (nothing generated or sampled)."),
 ) -> None:
     """Generate, fit and evaluate every benchmark, then write the paper's accuracy and ADI tables."""
     import time
@@ -222,6 +224,12 @@ def reproduce(
     from ..evaluate import EvaluationConfig
     from ..reproduce import ReproduceConfig
     from ..reproduce import reproduce as run_reproduction
+    from ..reproduce import write_tables
+
+    if tables_only:
+        write_tables(out)
+        typer.echo((out / "accuracy.md").read_text() + "\n" + (out / "adi.md").read_text())
+        return
 
     sampler = choose_sampler(sampler_name, replace(PRESET, chains=chains, steps=steps, burn_in=burn_in,
                                                    tune_rounds=tune_rounds, tune_steps=tune_steps), particles,
