@@ -65,7 +65,10 @@ def main() -> None:
                 for target in [t for t in scored_benchmarks(benchmark) if (args.data / t).is_dir()]:
                     result_file = score_file(args.out / "runs" / target, config)
                     if args.rescore or not result_file.exists() or _scored_before(result_file, state):
-                        evaluate_baseline(trained, args.data / target, args.out / "runs" / target, args.episodes)
+                        bar, update = progress_bar(f"{name}: scoring on {target}")
+                        with bar:
+                            evaluate_baseline(trained, args.data / target, args.out / "runs" / target,
+                                              args.episodes, progress=update)
                     result = json.loads(result_file.read_text())
                     scored[target] = {k: round(100 * v["mean"], 1) for k, v in result["accuracy"].items()}
                     if target == benchmark:     # the training folder keeps its own score (baseline status reads it)
