@@ -8,7 +8,7 @@ Times, side by side in one run on the same random tasks (median of ``--repeats``
 
 once with the pooling the backbone uses (:func:`mitsuba_p3.baselines.conv4.max_pool2`, a
 reshape and a max) and once with ``lax.reduce_window`` (its gradient is XLA's
-``select_and_scatter``), with their ratio and the largest difference of the losses.
+``select_and_scatter``), with their ratio and the difference of their losses.
 
     python scripts/bench_baselines.py [--repeats 3] [--resolutions 56,84]
 """
@@ -61,7 +61,7 @@ def measure(method: str, resolution: int, way: int, repeats: int, meta_batch: in
     optimiser = optax.adam(1e-3)
     opt_state = optimiser.init(params)
     tasks = _tasks(np.random.default_rng(0), resolution, way, meta_batch)
-    support, labels, queries = tasks[0][0], tasks[0][1], tasks[0][2]
+    support, labels, queries, _ = tasks[0]
 
     def build():
         @jax.jit
@@ -105,9 +105,9 @@ def main() -> None:
     for method in args.methods.split(","):
         for resolution in (int(r) for r in args.resolutions.split(",")):
             for way in (5, 10):
-                report[f"{method}-{resolution}-{way}way"] = measure(method, resolution, way, args.repeats)
-                print(f"{method}-{resolution}-{way}way", report[f"{method}-{resolution}-{way}way"], flush=True,
-                      file=sys.stderr)
+                name = f"{method}-{resolution}-{way}way"
+                report[name] = measure(method, resolution, way, args.repeats)
+                print(name, report[name], flush=True, file=sys.stderr)
     print(json.dumps(report, indent=1))
 
 

@@ -107,7 +107,7 @@ def test_tables_only_rewrites_the_tables_from_run_folders_and_refuses_a_folder_w
     import subprocess
     import sys
 
-    (tmp_path / "runs" / "dark-fitted" / "baselines").mkdir(parents=True)
+    (tmp_path / "runs" / "dark-fitted").mkdir(parents=True)
     (tmp_path / "runs" / "dark-fitted" / "results.json").write_text(json.dumps({"results": {"p3": result(0.9, 0.01)}}))
     (tmp_path / "runs" / "dark" / "baselines").mkdir(parents=True)
     (tmp_path / "runs" / "dark" / "baselines" / "maml-84.json").write_text(
