@@ -34,7 +34,7 @@ import numpy as np
 from mitsuba_p3.benchmarks.dataset import LABELS_FILE, load_dataset
 from mitsuba_p3.files import atomic_json
 from mitsuba_p3.fit.model import FittedModel, empty_render, render_train_split
-from mitsuba_p3.fit.noise import fit_noise
+from mitsuba_p3.fit.noise import SPECTRUM_FILE, fit_noise, save_spectra
 from mitsuba_p3.infer.model import PosteriorCore
 from mitsuba_p3.infer.posterior import default_likelihood
 from mitsuba_p3.infer.smc import SMCConfig, sample_smc, shape_weights
@@ -63,8 +63,9 @@ def refit_noise(model_dir: Path, dataset, out: Path) -> FittedModel:
     shutil.copytree(model_dir, out)
     model = FittedModel(out)
     observations, renders = render_train_split(model, dataset, shadows=True)
-    noise, figures = fit_noise(observations, renders, empty_render(model, *dataset.resolution, shadows=True),
-                               shadows=True)
+    noise, figures, spectra = fit_noise(observations, renders,
+                                        empty_render(model, *dataset.resolution, shadows=True), shadows=True)
+    save_spectra(out / SPECTRUM_FILE, spectra)
     atomic_json(out / "noise.json", {"model": noise.as_dict(), "figures": figures,
                                      "resolution": list(dataset.resolution)})
     return FittedModel(out)

@@ -7,16 +7,26 @@ the residuals at the true geometry; the question for inference is which one rank
 model was fitted on; the test split is never read), this samples the P3 posterior
 with tempered SMC (:mod:`mitsuba_p3.infer.smc`) under each form and prints JSON:
 the share of images whose most probable shape, and whose posterior-mean size
-class, match the labels, the mean log p(true shape), and seconds per image.
+class, match the labels, the mean log p(true shape), the mean position error of the
+posterior-mean shift, the SMC's temperatures, and seconds per image.
 
     python scripts/select_noise.py --dataset data/fsclvr --model data/models/fsclvr [--images 30]
-        [--forms fitted,robust] [--particles 32] [--islands 1]
+        [--forms fitted,robust,spectral] [--particles 32] [--islands 1] [--out rows.jsonl]
+        [--shrink 0,1,3 --copies DIR]
+
+``--shrink`` adds one spectral form per lambda (the spectrum's shrinkage towards white noise,
+:mod:`mitsuba_p3.fit.noise`): the model's noise stage is fitted again with that lambda into a
+copy of the model under ``--copies`` (the train split only), and named ``spectral-LAMBDA``.
+
+With ``--out`` every image's row is appended to a JSON-lines file as it is done, and a
+rerun skips the (form, image) pairs already there: a killed run loses one image.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -33,6 +43,34 @@ def size_class(scale: np.ndarray, sizes: dict[str, float]) -> str:
     return min(sizes, key=lambda name: abs(np.log(sizes[name]) - np.log(value)))
 
 
+_TRAIN = {}
+
+
+def shrunk_model(model_dir: Path, dataset, shrink: float, out: Path) -> FittedModel:
+    """A copy of the model whose noise stage is fitted again with spectral shrinkage ``shrink``."""
+    import shutil
+
+    from mitsuba_p3.files import atomic_json
+    from mitsuba_p3.fit.model import empty_render, render_train_split
+    from mitsuba_p3.fit.noise import SPECTRUM_FILE, fit_noise, save_spectra
+
+    if (out / "noise.json").is_file() and json.loads((out / "noise.json").read_text())["model"].get(
+            "spectral_shrink") == shrink:
+        return FittedModel(out)
+    if out.exists():
+        shutil.rmtree(out)
+    shutil.copytree(model_dir, out)
+    model = FittedModel(out)
+    if "pairs" not in _TRAIN:
+        _TRAIN["pairs"] = render_train_split(model, dataset, shadows=True)
+        _TRAIN["empty"] = empty_render(model, *dataset.resolution, shadows=True)
+    noise, figures, spectra = fit_noise(*_TRAIN["pairs"], _TRAIN["empty"], shadows=True, spectral_shrink=shrink)
+    save_spectra(out / SPECTRUM_FILE, spectra)
+    atomic_json(out / "noise.json", {"model": noise.as_dict(), "figures": figures})
+    print(f"spectral-{shrink}: power {noise.spectral_power:.4g}, {figures['spectral']}", flush=True)
+    return FittedModel(out)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--dataset", default="data/fsclvr")
@@ -41,7 +79,15 @@ def main() -> None:
     parser.add_argument("--forms", default="fitted,robust")
     parser.add_argument("--particles", type=int, default=SMCConfig.particles)
     parser.add_argument("--islands", type=int, default=SMCConfig.islands, help="independent SMC runs, pooled")
+    parser.add_argument("--out", type=Path, help="JSON-lines file of per-image rows (appended; resumes)")
+    parser.add_argument("--shrink", default="", help="lambdas of spectral forms fitted again (comma-separated)")
+    parser.add_argument("--copies", type=Path, default=Path("out/select-noise-models"))
     args = parser.parse_args()
+    done = {}
+    if args.out and args.out.is_file():
+        for line in args.out.read_text().splitlines():
+            row = json.loads(line)
+            done[row["form"], row["index"]] = row
 
     dataset = load_dataset(args.dataset)
     fitted = FittedModel(args.model)
@@ -55,24 +101,46 @@ def main() -> None:
     config = SMCConfig(particles=args.particles, islands=args.islands)
     report = {"dataset": args.dataset, "images": len(shots),
               "smc": {"particles": config.particles, "islands": config.islands}}
-    for form in [f.strip() for f in args.forms.split(",") if f.strip()]:
-        core = PosteriorCore(fitted, default_likelihood(fitted, "p3", noise=form), "mitsuba",
-                             *dataset.resolution)
-        shape_right, size_right, log_true, seconds = [], [], [], []
+    models = {form: fitted for form in [f.strip() for f in args.forms.split(",") if f.strip()]}
+    for value in [v.strip() for v in args.shrink.split(",") if v.strip()]:
+        models[f"spectral-{value}"] = shrunk_model(args.model, dataset, float(value), args.copies / f"shrink-{value}")
+    for form, model in models.items():
+        core = None
+        rows = []
         for i, shot in enumerate(shots):
+            if (form, shot.index) in done:
+                rows.append(done[form, shot.index])
+                continue
+            if core is None:
+                core = PosteriorCore(model, default_likelihood(model, "p3", noise=form.split("-")[0]), "mitsuba",
+                                     *dataset.resolution)
             start = time.perf_counter()
             run = sample_smc(core, core.observe(dataset.image(shot)), config)
-            seconds.append(time.perf_counter() - start)
+            seconds = time.perf_counter() - start
             weights = shape_weights(run.statistics)
-            shape_right.append(max(weights, key=weights.get) == shot.cls.shape)
-            log_true.append(float(np.log(max(weights[shot.cls.shape], 1e-12))))
             scale = np.exp(run.positions[..., 3:6].reshape(-1, 3)).mean(axis=0)
-            size_right.append(size_class(scale, sizes) == shot.cls.size)
-            print(f"{form} {i + 1}/{len(shots)} {shot.class_name}: shape {'ok' if shape_right[-1] else 'WRONG'} "
-                  f"size {'ok' if size_right[-1] else 'WRONG'} {seconds[-1]:.1f} s", flush=True)
-        report[form] = {"shape": float(np.mean(shape_right)), "size": float(np.mean(size_right)),
-                        "mean_log_p_true_shape": float(np.mean(log_true)),
-                        "seconds_per_image": float(np.median(seconds))}
+            shift = np.asarray(core.prior.constrain(run.positions.reshape(-1, run.positions.shape[-1]))["shift"])
+            row = {"form": form, "index": shot.index, "class": shot.class_name,
+                   "shape_right": max(weights, key=weights.get) == shot.cls.shape,
+                   "size_right": size_class(scale, sizes) == shot.cls.size,
+                   "log_p_true_shape": float(np.log(max(weights[shot.cls.shape], 1e-12))),
+                   "position_error_mm": 1000 * float(np.linalg.norm(shift.mean(axis=0) - shot.position[:2])),
+                   "temperatures": int(run.statistics["temperatures"]), "forced": run.statistics["forced"],
+                   "seconds": seconds}
+            rows.append(row)
+            if args.out:
+                with open(args.out, "a") as f:
+                    f.write(json.dumps(row) + "\n")
+            print(f"{form} {i + 1}/{len(shots)} {shot.class_name}: shape {'ok' if row['shape_right'] else 'WRONG'} "
+                  f"size {'ok' if row['size_right'] else 'WRONG'} {row['position_error_mm']:.1f} mm "
+                  f"T={row['temperatures']} {seconds:.1f} s", flush=True)
+        report[form] = {"shape": float(np.mean([r["shape_right"] for r in rows])),
+                        "size": float(np.mean([r["size_right"] for r in rows])),
+                        "mean_log_p_true_shape": float(np.mean([r["log_p_true_shape"] for r in rows])),
+                        "mean_position_error_mm": float(np.mean([r["position_error_mm"] for r in rows])),
+                        "median_temperatures": float(np.median([r["temperatures"] for r in rows])),
+                        "forced": float(np.mean([r["forced"] for r in rows])),
+                        "seconds_per_image": float(np.median([r["seconds"] for r in rows]))}
     print(json.dumps(report, indent=2))
 
 

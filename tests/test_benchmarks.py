@@ -124,13 +124,19 @@ def test_same_seed_same_benchmark(tiny_fsclvr, tmp_path):
         generate("fsclvr", again, seed=5, **TINY)  # resuming under an edited world is refused
 
 
-def test_dark_is_darker_and_room_differs(tiny_fsclvr, tmp_path):
+def test_dark_is_darker_and_room_and_studio_differ(tiny_fsclvr, tmp_path):
+    """Same classes and poses; dark is dimmer, room another floor, studio other lights and materials
+    (principled BSDFs under large soft boxes)."""
     dark = generate("dark", tmp_path / "dark", seed=5, **TINY).parent
     room = generate("room", tmp_path / "room", seed=5, **TINY).parent
-    first = json.loads((tiny_fsclvr / "labels.json").read_text())["images"][0]["file"]
-    plain, dim, other = (read_png(folder / first) for folder in (tiny_fsclvr, dark, room))
+    studio = generate("studio", tmp_path / "studio", seed=5, **TINY).parent
+    labels = [json.loads((folder / "labels.json").read_text())["images"] for folder in (tiny_fsclvr, studio)]
+    assert [(a["class"], a["pose"]) for a in labels[0]] == [(b["class"], b["pose"]) for b in labels[1]]
+    first = labels[0][0]["file"]
+    plain, dim, other, lit = (read_png(folder / first) for folder in (tiny_fsclvr, dark, room, studio))
     assert dim.mean() < 0.7 * plain.mean()
     assert np.abs(other - plain).mean() > 0.05
+    assert np.abs(lit - plain).mean() > 0.02 and "principled" in (studio / "scene.xml").read_text()
 
 
 def test_object_is_where_its_label_says(tiny_fsclvr, mi):

@@ -221,6 +221,35 @@ def test_material_gibbs_moves_explain_the_image(fitted, observed):
     assert np.argmax(colour) == 0  # red, like the truth
 
 
+def test_material_moves_under_the_spectral_form_score_what_the_render_scores(fitted, observed):
+    """Under the spectral (correlated) noise form the material update whitens its bases: its log
+    density is the rendered one, and from a wrong material it makes the render match the image."""
+    import jax
+    from blackjax.mcmc.random_walk import RWState
+
+    from mitsuba_p3.infer.model import PosteriorCore
+
+    core = PosteriorCore(fitted, LikelihoodConfig("p3", spectral=True, power=0.5, shadows=False), "mitsuba",
+                         *observed.shape[:2])
+    ky, kx = np.meshgrid(np.fft.fftfreq(observed.shape[0]), np.fft.rfftfreq(observed.shape[1]), indexing="ij")
+    core.spectra = {observed.shape[:2]: np.repeat((2e-3 + 2e-5 / (1e-3 + ky ** 2 + kx ** 2))[..., None], 3, -1)}
+    observation = core.observe(observed)
+    x = {"shift": TRUTH["shift"][None], "theta": np.array([TRUTH["theta"]]), "scale": TRUTH["scale"][None],
+         "class_probabilities": np.array([[0.05, 0.9, 0.05]]), "colour": np.array([[0.3, 0.3, 0.3]]),
+         "ambient": np.array([0.1]), "diffuse": np.array([0.4]), "specular": np.array([0.6]),
+         "shininess": np.array([5.0])}
+    z = core.prior.unconstrain(x)[0].astype(np.float32)
+    logdensity = jax.jit(core.logdensity)
+    state = RWState(z, logdensity(z, observation))
+    error = lambda s: float(np.sqrt(np.mean((np.asarray(core.render(s.position)) - observed) ** 2)))  # noqa: E731
+    start = error(state)
+    move = jax.jit(core.material_move)
+    for i in range(20):
+        state, _ = move(jax.random.PRNGKey(i), state, observation)
+    assert error(state) < 0.25 * start
+    assert float(state.logdensity) == pytest.approx(float(logdensity(state.position, observation)), rel=1e-5)
+
+
 def test_ridge_move_keeps_the_image_and_the_prior(fitted, observed):
     """The ridge move (c s, k_a / s, k_d / s) moves often, leaves the prior invariant (prior draws moved
     30 times still follow the prior: the colour's brightness and k_d, two-sample KS tests), changes

@@ -4,8 +4,8 @@ A class is a tuple (shape, colour, material, size). :func:`plan` turns a
 variant, a seed and a size into the full list of image labels -- which class,
 split, shot and pose each image gets -- before anything is rendered, so a
 generation can resume and two runs with one seed agree exactly. Classes and
-poses depend on the seed only, not on the variant: ``fsclvr``, ``dark`` and
-``room`` made with one seed show the same objects in the same poses.
+poses depend on the seed only, not on the variant: ``fsclvr``, ``dark``, ``room``
+and ``studio`` made with one seed show the same objects in the same poses.
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from ..errors import BenchmarkError
 from ..scene import COLOURS, SIZES
 from ..shapes import SHAPES
 
-VARIANTS: tuple[str, ...] = ("fsclvr", "dark", "room", "ood")
+VARIANTS: tuple[str, ...] = ("fsclvr", "dark", "room", "ood", "studio")
 MATERIAL_NAMES: tuple[str, ...] = ("rubber", "metal")
 SPLITS: tuple[str, ...] = ("train", "test")
 
@@ -40,9 +40,9 @@ class Size:
 # Full sizes follow BENCHMARK.md; "small" is the built-in example for tests and the demo.
 SIZES_BY_NAME: dict[str, dict[str, Size]] = {
     "full": {"fsclvr": Size(30, 20, 6), "dark": Size(30, 20, 6), "room": Size(30, 20, 6),
-             "ood": Size(0, 10, 6)},
+             "ood": Size(0, 10, 6), "studio": Size(30, 20, 6)},
     "small": {"fsclvr": Size(5, 5, 3), "dark": Size(5, 5, 3), "room": Size(5, 5, 3),
-              "ood": Size(0, 5, 3)},
+              "ood": Size(0, 5, 3), "studio": Size(5, 5, 3)},
 }
 
 

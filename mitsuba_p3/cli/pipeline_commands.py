@@ -16,7 +16,8 @@ from .app import app, parse_resolution, phase_progress_bar, progress_bar, sample
 
 
 NOISE_HELP = ("Noise model: fitted (the Gaussian fitted to the model's train residuals, with hard shadows), "
-              "robust (the fitted inlier/outlier mixture) or paper (sigma 1, no shadows: the paper's).")
+              "robust (the fitted inlier/outlier mixture), spectral (the correlated Gaussian field fitted to the "
+              "train residual windows' power spectrum) or paper (sigma 1, no shadows: the paper's).")
 SPREAD_HELP = ("Train images per train class whose posteriors fit the protoprograms' concept spread "
                "(sampled like the test images; 0: the paper's programs, tables in RUN/spread0).")
 KL_HELP = ("The distance's KL direction: image||class (KL(C_I || C_k), chosen on held-out train classes' 1- and "

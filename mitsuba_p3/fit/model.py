@@ -17,6 +17,8 @@ channel_losses.npz     every channel's loss, per layer
 priors.json            prior configuration and the fitted GMMs
 noise.json             the pixel noise model fitted to the train residuals (sigma, outlier
                        weight, likelihood power) and figures about the fit
+noise_spectrum.npz     the spectral noise form: the residuals' power spectrum per channel,
+                       one array per window size ("56x72", "120x160")
 =====================  ===========================================================
 
 Stages: ``scene`` (scene optimisation), ``features``, ``priors`` and ``noise``
@@ -40,7 +42,7 @@ import numpy as np
 from ..files import atomic_json, atomic_npz, atomic_write, claim_output_folder
 from ..benchmarks.dataset import Dataset, load_dataset
 from .features import Channel, channel_losses, select_channels
-from .noise import NoiseModel, fit_noise
+from .noise import SPECTRUM_FILE, NoiseModel, fit_noise, load_spectra, save_spectra
 from .priors import Prior, PriorConfig, fit_priors
 from ..errors import FitError
 from .scene_opt import SceneFit, SceneOptConfig, geometry_of, material_key, optimise_scene
@@ -50,7 +52,7 @@ MODEL_VERSION = 1
 STAGES = ("scene", "features", "priors", "noise")
 # the files of a model folder (any of them marks a folder as a fit's own, e.g. one killed before model.json)
 MODEL_FILES = ("model.json", "scene.npz", "scene.xml", "snapshots.npz", "pattern.png", "materials.json",
-               "loss_curve.csv", "channel_losses.npz", "features.json", "priors.json", "noise.json", "figures")
+               "loss_curve.csv", "channel_losses.npz", "features.json", "priors.json", "noise.json", SPECTRUM_FILE, "figures")
 
 
 class FittedModel:
@@ -113,6 +115,13 @@ class FittedModel:
         self.require("priors")
         with self._reading("priors.json", "priors"):
             return Prior.from_dict(json.loads((self.root / "priors.json").read_text()))
+
+    @property
+    def noise_spectra(self) -> dict[tuple[int, int], np.ndarray]:
+        """The spectral noise form's power spectra, keyed by window size (:mod:`.noise`)."""
+        self.require("noise")
+        with self._reading(SPECTRUM_FILE, "noise"):
+            return load_spectra(self.root / SPECTRUM_FILE)
 
     @property
     def noise(self) -> NoiseModel:
@@ -245,8 +254,9 @@ def fit_model(dataset_dir: str | Path, out: str | Path, stages: Sequence[str] = 
         if progress:
             progress("noise", 0, 1, 0.0)
         observations, renders = render_train_split(model, dataset, shadows=True)
-        noise, figures = fit_noise(observations, renders, empty_render(model, *dataset.resolution, shadows=True),
-                                   shadows=True)
+        noise, figures, spectra = fit_noise(observations, renders,
+                                            empty_render(model, *dataset.resolution, shadows=True), shadows=True)
+        save_spectra(root / SPECTRUM_FILE, spectra)
         atomic_json(root / "noise.json", {"model": noise.as_dict(), "figures": figures})
         _record(root, dataset, "noise", {"model": noise.as_dict(), **figures,
                                          "seconds": round(time.perf_counter() - start, 1)})

@@ -52,6 +52,27 @@ effective number of independent pixels is about N / A). The likelihood is raised
 to the power beta = 1 / A, the magnitude adjustment of a composite likelihood
 (Ribatet et al. 2012): the curvature of the summed log likelihood is then that
 of N / A independent observations.
+
+**The correlated (spectral) form.** The power beta divides *all* the evidence by
+A, the silhouette's included, although what is correlated is the low-frequency
+mismatch of shading (soft shadows, rough highlights), not the outline. The
+spectral form models the residual window r (h x w, per channel) instead as a
+stationary Gaussian random field on the h x w torus: its orthonormal 2-D DFT
+coefficients R(k) are independent with variances P(k), the field's power
+spectrum (a circulant covariance: Whittle 1953). Then
+
+    log p(r) = -1/2 sum_k |R(k)|^2 / P(k) - 1/2 sum_k log(2 pi P(k))
+
+i.e. the residual is whitened by the filter 1 / sqrt(P) and scored as white
+noise. The maximum-likelihood P from N residual windows is their mean
+periodogram, which is what :func:`fit_spectra` computes, per channel, on windows
+of the train split's residuals centred on the object (where the sampler scores:
+:data:`SCORING_WINDOW`) and on whole images. Frequencies where the Phong model's
+mismatch is large (low ones: blobs) get little weight; those where the fitted
+renders match the images (high ones: a misplaced edge) keep theirs. Whitened
+train residuals are close to white, and what correlation is left (mostly across
+the three colour channels, which share a shading mismatch) gives this form's own
+power, 1 / (its spatial correlation area x its colour-channel correlation area).
 """
 from __future__ import annotations
 
@@ -60,6 +81,12 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 OUTLIER_LOG_DENSITY = -3.0 * np.log(2.0)   # uniform on [-1, 1]^3
+# the window (height, width) the SMC scores around the object by default (:mod:`mitsuba_p3.infer.smc`):
+# the spectral noise form is fitted on train windows of this size (and on whole images)
+SCORING_WINDOW = (56, 72)
+SPECTRUM_FILE = "noise_spectrum.npz"
+# lambda of the spectral form's shrinkage towards white noise (see the module docstring)
+SPECTRAL_SHRINK = 1.0
 
 
 @dataclass(frozen=True)
@@ -73,6 +100,8 @@ class NoiseModel:
     shadows: bool = True  # the residuals came from renders with hard shadows (inference must match)
     gaussian_sigma: float | None = None   # the residuals' RMS per channel: sigma of the Gaussian form (eps = 0)
     footprint: float | None = None        # |observed - empty floor| above this marks the object or its shadow
+    spectral_power: float | None = None   # the spectral form's power (None: no spectrum fitted)
+    spectral_shrink: float | None = None  # lambda: the spectrum is P + lambda mean(P) (0: the pure field)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -146,21 +175,125 @@ def correlation_area(residuals: np.ndarray, max_lag: int = 12) -> float:
     return float(max(1.0, np.sum(window)))
 
 
-def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, shadows: bool
-              ) -> tuple[NoiseModel, dict]:
+def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, shadows: bool,
+              windows: list[tuple[int, int]] | None = None, spectral_shrink: float = SPECTRAL_SHRINK
+              ) -> tuple[NoiseModel, dict, dict]:
     """The noise model of (observed, rendered) image pairs (N, H, W, 3), given the empty-floor render
-    (H, W, 3), and figures about the fit; ``shadows`` says whether the renders had hard shadows."""
+    (H, W, 3), figures about the fit, and the spectral form's spectra per window size (``windows``,
+    default :data:`SCORING_WINDOW`, and the whole image); ``shadows`` says whether the renders had hard
+    shadows."""
     residuals = np.asarray(observations, np.float64) - np.asarray(renders, np.float64)
     regions = object_pixels(np.asarray(renders), np.asarray(empty)).astype(int)     # 1: object or its shadow
     sigma, outlier, iterations = fit_mixture(residuals, regions)
     area = correlation_area(residuals)
     floor = np.abs(residuals).max(axis=-1)[regions == 0]
+    sizes = list(dict.fromkeys([tuple(w) for w in (windows or [SCORING_WINDOW])] + [residuals.shape[1:3]]))
+    spectra, spectral_power, spectral = fit_spectra(residuals, regions.astype(bool), sizes, spectral_shrink)
     model = NoiseModel(sigma=sigma, outlier=float(outlier[0]), object_outlier=float(outlier[-1]),
                        power=1.0 / area, shadows=shadows, gaussian_sigma=float(np.sqrt(np.mean(residuals ** 2))),
-                       footprint=float(np.quantile(floor, 0.999)) if floor.size else None)
+                       footprint=float(np.quantile(floor, 0.999)) if floor.size else None,
+                       spectral_power=spectral_power, spectral_shrink=spectral_shrink)
     figures = {"pixels": int(np.prod(residuals.shape[:-1])), "object_pixels": int(regions.sum()),
                "residual_rms": model.gaussian_sigma,
                "em_iterations": iterations, "correlation_area_pixels": area,
                "effective_sigma": model.gaussian_sigma / np.sqrt(model.power),
-               "effective_sigma_mixture": sigma / np.sqrt(model.power)}
-    return model, figures
+               "effective_sigma_mixture": sigma / np.sqrt(model.power), "spectral": spectral}
+    return model, figures, spectra
+
+
+def window_around(mask: np.ndarray, size: tuple[int, int]) -> tuple[int, int]:
+    """(top, left) of a ``size`` window centred on the bounding box of ``mask`` (H, W), kept inside the
+    image (the image's centre for an empty mask)."""
+    height, width = mask.shape
+    rows, cols = np.nonzero(mask)
+    if rows.size == 0:
+        rows, cols = np.array([height // 2]), np.array([width // 2])
+    top = int(np.clip((rows.min() + rows.max() + 1 - size[0]) // 2, 0, height - size[0]))
+    left = int(np.clip((cols.min() + cols.max() + 1 - size[1]) // 2, 0, width - size[1]))
+    return top, left
+
+
+def rfft_multiplicity(width: int) -> np.ndarray:
+    """How often each column of a real signal's ``rfft2`` stands in the full spectrum (width // 2 + 1,):
+    1 for the zero and (even width) Nyquist columns, 2 for the others."""
+    counts = np.full(width // 2 + 1, 2.0)
+    counts[0] = 1.0
+    if width % 2 == 0:
+        counts[-1] = 1.0
+    return counts
+
+
+def periodogram(windows: np.ndarray) -> np.ndarray:
+    """The mean periodogram (h, w // 2 + 1, 3) of residual windows (N, h, w, 3): the maximum-likelihood
+    power spectrum of a stationary Gaussian field on the h x w torus, orthonormal DFT units (white
+    noise of variance s^2 has P = s^2 everywhere)."""
+    spectrum = np.fft.rfft2(np.asarray(windows, np.float64), axes=(1, 2), norm="ortho")
+    return np.mean(np.abs(spectrum) ** 2, axis=0)
+
+
+def whiten_numpy(windows: np.ndarray, spectrum: np.ndarray) -> np.ndarray:
+    """Residual windows (N, h, w, 3) filtered by 1 / sqrt(P): white noise of variance 1 if the field
+    has power spectrum ``spectrum``."""
+    height, width = np.shape(windows)[1:3]
+    spectral = np.fft.rfft2(np.asarray(windows, np.float64), axes=(1, 2), norm="ortho") / np.sqrt(spectrum)
+    return np.fft.irfft2(spectral, s=(height, width), axes=(1, 2), norm="ortho")
+
+
+def channel_correlation_area(residuals: np.ndarray) -> float:
+    """The correlation area across colour channels: the mean over channels of the sum of their
+    correlations with every channel (1 for independent channels, 3 for identical ones)."""
+    flat = np.asarray(residuals, np.float64).reshape(-1, 3)
+    return float(max(1.0, np.corrcoef(flat, rowvar=False).sum() / 3.0))
+
+
+def fit_spectra(residuals: np.ndarray, regions: np.ndarray, sizes: list[tuple[int, int]],
+                shrink: float = 0.0, floor: float = 1e-3) -> tuple[dict[tuple[int, int], np.ndarray], float, dict]:
+    """The spectral noise form (module docstring) of residuals (N, H, W, 3) whose object pixels are
+    ``regions`` (N, H, W): per window size, the mean periodogram of the windows centred on each image's
+    object plus ``shrink`` x its mean (white noise: the shrinkage towards the independent form), floored
+    at ``floor`` x its median so that no frequency gets an unbounded weight, and scaled to the level at
+    which the whitened windows have variance 1 (the maximum-likelihood level of that shape); the form's
+    power; and figures. The power and figures come from the first size's whitened windows."""
+    residuals = np.asarray(residuals, np.float64)
+    count, height, width, _ = residuals.shape
+    spectra, figures = {}, {}
+    for size in sizes:
+        size = (min(size[0], height), min(size[1], width))
+        corners = [window_around(regions[n], size) for n in range(count)]
+        windows = np.stack([residuals[n, t:t + size[0], l:l + size[1]] for n, (t, l) in enumerate(corners)])
+        spectrum = periodogram(windows)
+        spectrum = spectrum + shrink * np.mean(spectrum, axis=(0, 1), keepdims=True)
+        spectrum = np.maximum(spectrum, floor * np.median(spectrum, axis=(0, 1), keepdims=True))
+        # the shrunk shape at its maximum-likelihood level: whitened windows of variance 1 per channel
+        spectrum = spectrum * np.mean(whiten_numpy(windows, spectrum) ** 2, axis=(0, 1, 2))
+        spectra[size] = spectrum.astype(np.float32)
+        if len(spectra) == 1:
+            white = whiten_numpy(windows, spectrum)
+            spatial, channels = correlation_area(white), channel_correlation_area(white)
+            figures = {"spectral_window": list(size), "shrink": shrink,
+                       "raw_correlation_area_window": correlation_area(windows),
+                       "whitened_correlation_area": spatial, "whitened_channel_correlation_area": channels,
+                       "whitened_variance": float(np.mean(white ** 2)),
+                       "low_to_high_power": float(spectrum[:3, :3].mean() / spectrum[size[0] // 4:3 * size[0] // 4,
+                                                                                 size[1] // 4:].mean())}
+    power = 1.0 / (figures["whitened_correlation_area"] * figures["whitened_channel_correlation_area"])
+    return spectra, power, figures
+
+
+def save_spectra(path, spectra: dict[tuple[int, int], np.ndarray]) -> None:
+    from ..files import atomic_npz
+
+    atomic_npz(path, **{f"{h}x{w}": value for (h, w), value in spectra.items()})
+
+
+def load_spectra(path) -> dict[tuple[int, int], np.ndarray]:
+    """The spectra of :func:`save_spectra`, keyed by window size; checked to be finite and positive."""
+    out = {}
+    with np.load(path, allow_pickle=False) as data:
+        for key in data.files:
+            h, w = (int(v) for v in key.split("x"))
+            value = np.asarray(data[key], np.float32)
+            if value.shape != (h, w // 2 + 1, 3) or not np.all(np.isfinite(value) & (value > 0)):
+                raise ValueError(f"spectrum {key} has shape {value.shape} or non-positive values")
+            out[h, w] = value
+    return out

@@ -7,7 +7,17 @@ raised to the power beta:
 
     log p = beta * sum over pixels of log[(1 - eps) prod_c TN(r_c; 0, sigma, [-1, 1]) + eps / 8]
 
-With eps = 0 and beta = 1 it is the paper's likelihood, sigma = 1.0 (0.35 on its
+With ``spectral`` (``--noise spectral``) the residual window is instead a stationary Gaussian
+random field with the power spectrum P fitted on the train split's residual windows
+(:mod:`mitsuba_p3.fit.noise`): the residual is whitened by 1 / sqrt(P) in the Fourier
+domain and scored as white noise,
+
+    log p = beta * (-1/2 ||whiten(r)||^2 - 1/2 sum_k log(2 pi P(k)))
+
+so the low-frequency shading mismatch the Phong model always leaves is discounted and
+the edges keep their weight (beta here is the small leftover correlation's power).
+
+With eps = 0 and beta = 1 the first form is the paper's likelihood, sigma = 1.0 (0.35 on its
 dark set), a sum of truncated normals over every pixel and channel: the default
 (``--noise paper``). ``--noise fitted`` uses the numbers the fit measured on the
 train split's residuals: a Gaussian (eps = 0) with their RMS as sigma and the power
@@ -28,8 +38,9 @@ from ..fit.features import Channel, neural_distance, selected_features
 
 LIKELIHOODS = ("p3", "np3")
 # fitted: the Gaussian noise fitted to the train residuals (sigma, power); robust: the fitted
-# inlier/outlier mixture; paper: sigma 1 (:mod:`mitsuba_p3.fit.noise` says why fitted is Gaussian)
-NOISES = ("fitted", "robust", "paper")
+# inlier/outlier mixture; spectral: the correlated Gaussian field fitted to the train residual windows;
+# paper: sigma 1 (:mod:`mitsuba_p3.fit.noise` says why fitted is Gaussian)
+NOISES = ("fitted", "robust", "spectral", "paper")
 
 
 @dataclass(frozen=True)
@@ -43,6 +54,7 @@ class LikelihoodConfig:
     power: float = 1.0            # beta, the power of the colour likelihood (the paper: 1)
     shadows: bool = False         # hard shadows in the likelihood's renders (the paper: off)
     neural_weight: float = 0.05
+    spectral: bool = False        # the correlated form: whiten by the fitted spectrum (sigma only reported)
 
     def __post_init__(self):
         from ..errors import ConfigError
@@ -60,6 +72,32 @@ class LikelihoodConfig:
             raise ConfigError(f"the likelihood power must lie in (0, 1]; got {self.power}")
         if not (np.isfinite(self.neural_weight) and self.neural_weight >= 0):
             raise ConfigError(f"the neural weight must be >= 0; got {self.neural_weight}")
+        if self.spectral and (self.outlier > 0 or self.object_outlier is not None):
+            raise ConfigError("the spectral noise form has no outlier weights")
+
+
+def whiten(images, observation: dict, config: LikelihoodConfig):
+    """Images (..., h, w, 3) as the likelihood's noise model sees them (JAX): filtered by 1 / sqrt(P)
+    under the spectral form (``observation["spectrum"]``, (h, w // 2 + 1, 3)), divided by sigma
+    otherwise. The Gaussian part of the colour likelihood is -1/2 beta ||whiten(r)||^2 + constant,
+    and whitening is linear: the material update's Gram matrices are those of whitened bases."""
+    import jax.numpy as jnp
+
+    if not config.spectral:
+        return images / config.sigma
+    height, width = images.shape[-3:-1]
+    spectral = jnp.fft.rfft2(images, axes=(-3, -2), norm="ortho") / jnp.sqrt(observation["spectrum"])
+    return jnp.fft.irfft2(spectral, s=(height, width), axes=(-3, -2), norm="ortho")
+
+
+def spectral_log_likelihood(observed, renders, observation: dict, config: LikelihoodConfig):
+    """The spectral form's log likelihood of renders (B, h, w, 3) -> (B,) (module docstring)."""
+    import jax.numpy as jnp
+
+    residual = jnp.asarray(observed)[None] - renders
+    spectral = jnp.fft.rfft2(residual, axes=(-3, -2), norm="ortho")
+    quadratic = jnp.sum(observation["spectral_weight"] * (spectral.real ** 2 + spectral.imag ** 2), axis=(-3, -2, -1))
+    return config.power * (-0.5 * quadratic - 0.5 * observation["spectral_log_det"])
 
 
 def colour_log_likelihood(observed, renders, config: LikelihoodConfig, empty=None):
@@ -79,10 +117,11 @@ def colour_log_likelihood(observed, renders, config: LikelihoodConfig, empty=Non
 
 
 def observe(observed: np.ndarray, config: LikelihoodConfig, channels: list[Channel] | None = None,
-            empty: np.ndarray | None = None) -> dict:
-    """What the likelihood needs of an observed image (H, W, 3): the image, and for NP3 its
-    selected VGG16 features. A pytree, so a compiled sampler takes it as an argument and
-    serves every image of the same size without recompiling."""
+            empty: np.ndarray | None = None, spectra: dict | None = None) -> dict:
+    """What the likelihood needs of an observed image (H, W, 3): the image, for NP3 its selected
+    VGG16 features, and for the spectral form the fitted spectrum of its size (``spectra``, keyed
+    by (H, W)) with its weights and log-determinant. A pytree, so a compiled sampler takes it as an
+    argument and serves every image of the same size without recompiling."""
     if config.kind == "np3" and not channels:
         from ..errors import MitsubaP3Error
 
@@ -94,6 +133,21 @@ def observe(observed: np.ndarray, config: LikelihoodConfig, channels: list[Chann
 
             raise MitsubaP3Error("a likelihood with an object outlier weight needs the empty-floor render")
         observation["empty"] = np.asarray(empty, np.float32)
+    if config.spectral:
+        size = tuple(observation["image"].shape[:2])
+        if not spectra or size not in spectra:
+            from ..errors import MitsubaP3Error
+
+            fitted = ", ".join(f"{h}x{w}" for h, w in (spectra or {})) or "none"
+            raise MitsubaP3Error(f"the spectral noise form has no spectrum for {size[0]}x{size[1]} windows (fitted: "
+                                 f"{fitted}); score at a fitted size or refit the model's noise stage")
+        from ..fit.noise import rfft_multiplicity
+
+        spectrum = np.asarray(spectra[size], np.float32)
+        full = rfft_multiplicity(size[1])[None, :, None] * np.ones_like(spectrum)
+        observation["spectrum"] = spectrum
+        observation["spectral_weight"] = (full / spectrum).astype(np.float32)
+        observation["spectral_log_det"] = np.float32(np.sum(full * np.log(2 * np.pi * spectrum.astype(np.float64))))
     if config.kind == "np3":
         observation["features"] = [np.asarray(f) for f in selected_features(observation["image"][None], channels)]
     return observation
@@ -103,7 +157,10 @@ def score(observation: dict, renders, config: LikelihoodConfig, channels: list[C
     """(B, H, W, 3) renders -> (B,) log-likelihoods of ``observation`` (JAX). An observation's own
     ``neural_weight`` entry, a number the compiled sampler takes as an argument, overrides the
     config's: the SMC's bridge from P3 to NP3 tempers the neural term in by it."""
-    log_lik = colour_log_likelihood(observation["image"], renders, config, observation.get("empty"))
+    if config.spectral:
+        log_lik = spectral_log_likelihood(observation["image"], renders, observation, config)
+    else:
+        log_lik = colour_log_likelihood(observation["image"], renders, config, observation.get("empty"))
     if config.kind == "np3":
         features = selected_features(renders, channels)
         weight = observation.get("neural_weight", config.neural_weight)

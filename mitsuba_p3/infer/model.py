@@ -21,7 +21,7 @@ from ..fit.priors import Prior
 from ..render import RENDERERS
 from ..render.contract import OBJECT_SHAPES
 from ..space import DIMENSION, HYPOTHESES, OBJECT_KEYS, SLICES, render_params
-from .likelihood import LikelihoodConfig, observe, score
+from .likelihood import LikelihoodConfig, observe, score, whiten
 from .mcmc import Target
 
 # The ridge move's step: log s ~ N(0, RIDGE_STEP^2), a fifth of an e-fold of the colour's brightness.
@@ -137,6 +137,7 @@ class PosteriorCore:
         # footprint (pixels that differ from it by more than the fitted threshold) need it
         self.empty = self.renderer.render_empty()
         self.footprint_threshold = fitted.noise.footprint if (fitted.root / "noise.json").exists() else None
+        self.spectra = fitted.noise_spectra if likelihood.spectral else None
         self._windowed = {}       # (window size, bases) -> render function (see :meth:`_image`)
         if renderer == "mitsuba":
             self._render = mitsuba_render_function(self.renderer)
@@ -161,14 +162,14 @@ class PosteriorCore:
         """The observation pytree of an image at this core's size; with ``window`` (top, left, height,
         width) only that window of it is scored (its ``window`` entry is the offset the renders take)."""
         if window is None:
-            return observe(observed, self.config, self.channels, self.empty)
+            return observe(observed, self.config, self.channels, self.empty, self.spectra)
         if self.renderer_kind != "mitsuba":
             from ..errors import MitsubaP3Error
 
             raise MitsubaP3Error("windowed likelihoods need the mitsuba renderer")
         top, left, height, width = window
         crop = lambda image: np.asarray(image)[top:top + height, left:left + width]  # noqa: E731
-        observation = observe(crop(observed), self.config, self.channels, crop(self.empty))
+        observation = observe(crop(observed), self.config, self.channels, crop(self.empty), self.spectra)
         observation["window"] = np.array([top, left], np.int32)
         return observation
 
@@ -342,10 +343,16 @@ class PosteriorCore:
         # Both conditionals need only inner products of A, D, S and the residual r = I_obs - F,
         # per channel: one (3, 4, 4) Gram matrix serves both moves.
         vectors = jnp.concatenate([bases[..., :3, :], (observation["image"] - bases[..., 3, :])[..., None, :]],
-                                  axis=-2).reshape(-1, 12)                       # (pixels, 4 x 3)
+                                  axis=-2)                                          # (h, w, 4, 3)
+        precision = tempering * self.config.power / self.config.sigma ** 2
+        if self.config.spectral:
+            # the spectral form's quadratic is that of whitened images (linear), at precision power
+            vectors = jnp.moveaxis(whiten(jnp.moveaxis(vectors, -2, 0), observation, self.config), 0, -2)
+            precision = tempering * self.config.power
+        vectors = vectors.reshape(-1, 12)                                           # (pixels, 4 x 3)
         full = (vectors.T @ vectors).reshape(4, 3, 4, 3)                            # one matmul: XLA's fast path
-        # the Gaussian part of the likelihood: precision power / sigma^2 (outliers are left to the MH test)
-        gram = jnp.einsum("icjc->cij", full) * (tempering * self.config.power / self.config.sigma ** 2)
+        # the Gaussian part of the likelihood (outliers are left to the MH test)
+        gram = jnp.einsum("icjc->cij", full) * precision
         target = (tempering, log_prior or self.prior.log_prob)
         state, colour_ok = self._colour_move(k_colour, state, bases, gram, observation, target)
         state, weights_ok = self._weights_move(k_weights, state, bases, gram, observation, target)

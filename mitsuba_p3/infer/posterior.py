@@ -159,7 +159,9 @@ def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | No
       with that sigma; the paper used 0.35 on its dark set);
     - ``fitted``: the fit's ``noise`` stage, in its Gaussian form: sigma the train residuals' RMS,
       their correlation's power beta, renders with hard shadows as in that fit;
-    - ``robust``: the same stage's inlier/outlier mixture (sigma, outlier weights, beta, shadows).
+    - ``robust``: the same stage's inlier/outlier mixture (sigma, outlier weights, beta, shadows);
+    - ``spectral``: the same stage's correlated Gaussian field (the residual windows' power spectrum and
+      the power of what correlation whitening leaves), renders with hard shadows.
     """
     from ..errors import ConfigError
 
@@ -171,6 +173,12 @@ def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | No
     if noise == "robust":
         return LikelihoodConfig(kind=kind, sigma=model.sigma, outlier=model.outlier,
                                 object_outlier=model.object_outlier, power=model.power, shadows=model.shadows)
+    if noise == "spectral":
+        if model.spectral_power is None:
+            raise ConfigError(f"{fitted.root} has no spectral noise form; refit its noise stage: "
+                              f"mitsuba-p3 fit DATASET --out {fitted.root} --stages noise")
+        return LikelihoodConfig(kind=kind, sigma=model.gaussian_sigma, power=model.spectral_power,
+                                shadows=model.shadows, spectral=True)
     if model.gaussian_sigma is None:
         raise ConfigError(f"{fitted.root}/noise.json predates the Gaussian noise form; refit it with "
                           f"mitsuba-p3 fit DATASET --out {fitted.root} --stages noise")
