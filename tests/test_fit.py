@@ -393,6 +393,29 @@ def test_spectral_form_discounts_smooth_mismatch_and_keeps_edges():
             assert edge_cost == pytest.approx(blob_cost, rel=1e-3)
 
 
+def test_sandwich_power_divides_an_outline_by_a_length_and_a_patch_by_an_area():
+    """The composite likelihood's power along an image direction g: 1 for white residuals; for
+    correlated ones about 1 / (correlation area) when g is a broad patch, and several times more when
+    g is a one-pixel outline (the evidence is repeated along a correlation length, not an area)."""
+    from scipy.ndimage import gaussian_filter
+
+    from mitsuba_p3.fit.noise import correlation_area, pose_power
+
+    rng = np.random.default_rng(3)
+    size = (48, 64)
+    yy, xx = np.mgrid[:size[0], :size[1]]
+    ring = np.abs(np.hypot(yy - 24, xx - 32) - 10) < 0.5                   # an outline
+    patch = np.exp(-((yy - 24) ** 2 + (xx - 32) ** 2) / (2 * 8.0 ** 2))   # a broad change
+    directions = lambda m: np.repeat(m[None, None, ..., None], 3, -1).astype(float)  # noqa: E731
+    white = rng.normal(size=(20,) + size + (3,))
+    assert pose_power(white, directions(ring)) == pytest.approx(1.0, abs=0.05)
+    smooth = gaussian_filter(rng.normal(size=(40,) + size + (3,)), sigma=(0, 2, 2, 0))
+    area = correlation_area(smooth)
+    outline, broad = pose_power(smooth, directions(ring)), pose_power(smooth, directions(patch))
+    assert broad == pytest.approx(1.0 / area, rel=0.35)
+    assert outline > 3 * broad
+
+
 def test_robust_likelihood_bounds_what_an_outlier_costs():
     """A pixel far off costs at most -log(eps / 8) under the mixture, but grows without bound without it."""
     from mitsuba_p3.fit.noise import pixel_log_likelihood

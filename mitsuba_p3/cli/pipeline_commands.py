@@ -15,8 +15,9 @@ from ..infer.smc import SMCConfig
 from .app import app, parse_resolution, phase_progress_bar, progress_bar, sampler_option
 
 
-NOISE_HELP = ("Noise model: fitted (the Gaussian fitted to the model's train residuals, with hard shadows), "
-              "robust (the fitted inlier/outlier mixture), spectral (the correlated Gaussian field fitted to the "
+NOISE_HELP = ("Noise model: fitted (the Gaussian fitted to the model's train residuals, with hard shadows, "
+              "at the power 1 / their correlation area), sandwich (the same Gaussian at the composite "
+              "likelihood's power along the object's outline), robust (the fitted inlier/outlier mixture), spectral (the correlated Gaussian field fitted to the "
               "train residual windows' power spectrum) or paper (sigma 1, no shadows: the paper's).")
 SPREAD_HELP = ("Train images per train class whose posteriors fit the protoprograms' concept spread "
                "(sampled like the test images; 0: the paper's programs, tables in RUN/spread0).")

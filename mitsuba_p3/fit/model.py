@@ -193,6 +193,38 @@ def render_train_split(model: FittedModel, dataset: Dataset, shadows: bool | Non
     return observations, renders
 
 
+# the finite-difference steps of the pose directions: 1 mm of position, 2% of size
+POSE_STEPS = {"x": 0.001, "y": 0.001, "size": 0.02}
+
+
+def pose_directions(model: FittedModel, dataset: Dataset, shadows: bool = True) -> np.ndarray:
+    """(N, 3, H, W, 3) each train image's change of render along its object's x, y (per metre) and log
+    size (per unit), by central differences at the true geometry with the fitted material: the image
+    directions of the noise model's sandwich power (:func:`.noise.pose_power`)."""
+    from ..render import make_renderer
+
+    height, width = dataset.resolution
+    renderer = make_renderer(model.scene(), "mitsuba", height=height, width=width, shadows=shadows)
+    materials = model.materials
+    out = []
+    for shot in dataset.split("train"):
+        base = {**geometry_of(shot), **{k: np.asarray(v, np.float32) for k, v in materials[material_key(shot)].items()}}
+        rows = []
+        for name, step in POSE_STEPS.items():
+            pair = []
+            for sign in (1.0, -1.0):
+                moved = dict(base)
+                if name == "size":
+                    moved["scale"] = (base["scale"] * np.exp(sign * step)).astype(np.float32)
+                else:
+                    axis = 0 if name == "x" else 1
+                    moved["shift"] = base["shift"] + np.float32(sign * step) * np.eye(2, dtype=np.float32)[axis]
+                pair.append(renderer.render(moved))
+            rows.append((pair[0] - pair[1]) / (2 * step))
+        out.append(np.stack(rows))
+    return np.stack(out).astype(np.float32)
+
+
 def empty_render(model: FittedModel, height: int, width: int, shadows: bool) -> np.ndarray:
     """The fitted world with no object (a sub-pixel one): the floor as the model predicts it."""
     from ..render import make_renderer
@@ -255,7 +287,8 @@ def fit_model(dataset_dir: str | Path, out: str | Path, stages: Sequence[str] = 
             progress("noise", 0, 1, 0.0)
         observations, renders = render_train_split(model, dataset, shadows=True)
         noise, figures, spectra = fit_noise(observations, renders,
-                                            empty_render(model, *dataset.resolution, shadows=True), shadows=True)
+                                            empty_render(model, *dataset.resolution, shadows=True), shadows=True,
+                                            directions=pose_directions(model, dataset))
         save_spectra(root / SPECTRUM_FILE, spectra)
         atomic_json(root / "noise.json", {"model": noise.as_dict(), "figures": figures})
         _record(root, dataset, "noise", {"model": noise.as_dict(), **figures,

@@ -53,6 +53,22 @@ to the power beta = 1 / A, the magnitude adjustment of a composite likelihood
 (Ribatet et al. 2012): the curvature of the summed log likelihood is then that
 of N / A independent observations.
 
+**The power along the pose (the sandwich form).** 1 / A is the right power for a
+parameter whose effect on the image is a broad patch (a colour, a material weight):
+its evidence is spread over the same area as the residuals' correlation. A pose or
+size changes the image along the object's outline, a band a pixel or two wide, and
+the residuals correlated with that band are those along the outline, not a whole
+area: the evidence about the outline is repeated about a correlation *length*, not
+an area. The composite likelihood's own adjustment says so exactly (Pauli et al.
+2011; Ribatet et al. 2012): for the independence likelihood of residuals with
+covariance C, the curvature along a direction g of the image (H = g'g / sigma^2)
+and the variance of the score along it (J = g'Cg / sigma^4) give the power
+beta = H / J = sigma^2 g'g / g'Cg, the "sandwich" H^-1 J made a scalar. The fit
+takes g as the renders' finite differences along the object's x, y and size at the
+train split's true geometry, and C as the residuals' covariance over lags up to 12
+pixels, channels included, and pools beta = sum sigma^2 g'g / sum g'Cg. For white
+residuals it is 1; it is 1 / A for a g as broad as the correlation.
+
 **The correlated (spectral) form.** The power beta divides *all* the evidence by
 A, the silhouette's included, although what is correlated is the low-frequency
 mismatch of shading (soft shadows, rough highlights), not the outline. The
@@ -102,6 +118,7 @@ class NoiseModel:
     footprint: float | None = None        # |observed - empty floor| above this marks the object or its shadow
     spectral_power: float | None = None   # the spectral form's power (None: no spectrum fitted)
     spectral_shrink: float | None = None  # lambda: the spectrum is P + lambda mean(P) (0: the pure field)
+    pose_power: float | None = None       # the sandwich power along the pose (None: not fitted)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -176,12 +193,13 @@ def correlation_area(residuals: np.ndarray, max_lag: int = 12) -> float:
 
 
 def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, shadows: bool,
-              windows: list[tuple[int, int]] | None = None, spectral_shrink: float = SPECTRAL_SHRINK
-              ) -> tuple[NoiseModel, dict, dict]:
+              windows: list[tuple[int, int]] | None = None, spectral_shrink: float = SPECTRAL_SHRINK,
+              directions: np.ndarray | None = None) -> tuple[NoiseModel, dict, dict]:
     """The noise model of (observed, rendered) image pairs (N, H, W, 3), given the empty-floor render
     (H, W, 3), figures about the fit, and the spectral form's spectra per window size (``windows``,
     default :data:`SCORING_WINDOW`, and the whole image); ``shadows`` says whether the renders had hard
-    shadows."""
+    shadows; ``directions`` (N, P, H, W, 3), the renders' changes along the pose, give the sandwich
+    power (:func:`pose_power`)."""
     residuals = np.asarray(observations, np.float64) - np.asarray(renders, np.float64)
     regions = object_pixels(np.asarray(renders), np.asarray(empty)).astype(int)     # 1: object or its shadow
     sigma, outlier, iterations = fit_mixture(residuals, regions)
@@ -192,12 +210,16 @@ def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, 
     model = NoiseModel(sigma=sigma, outlier=float(outlier[0]), object_outlier=float(outlier[-1]),
                        power=1.0 / area, shadows=shadows, gaussian_sigma=float(np.sqrt(np.mean(residuals ** 2))),
                        footprint=float(np.quantile(floor, 0.999)) if floor.size else None,
-                       spectral_power=spectral_power, spectral_shrink=spectral_shrink)
+                       spectral_power=spectral_power, spectral_shrink=spectral_shrink,
+                       pose_power=None if directions is None else pose_power(residuals, directions))
     figures = {"pixels": int(np.prod(residuals.shape[:-1])), "object_pixels": int(regions.sum()),
                "residual_rms": model.gaussian_sigma,
                "em_iterations": iterations, "correlation_area_pixels": area,
                "effective_sigma": model.gaussian_sigma / np.sqrt(model.power),
-               "effective_sigma_mixture": sigma / np.sqrt(model.power), "spectral": spectral}
+               "effective_sigma_mixture": sigma / np.sqrt(model.power), "spectral": spectral,
+               "pose_power": model.pose_power,
+               "effective_sigma_pose": None if model.pose_power is None else
+               model.gaussian_sigma / np.sqrt(model.pose_power)}
     return model, figures, spectra
 
 
@@ -297,3 +319,44 @@ def load_spectra(path) -> dict[tuple[int, int], np.ndarray]:
                 raise ValueError(f"spectrum {key} has shape {value.shape} or non-positive values")
             out[h, w] = value
     return out
+
+
+def _padded_spectra(fields: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """rfft2 of fields (N, H, W, C) zero-padded to ``size`` (no wrap-around within the lags used)."""
+    return np.fft.rfft2(np.asarray(fields, np.float64), s=size, axes=(1, 2))
+
+
+def lag_covariance(residuals: np.ndarray, max_lag: int = 12) -> np.ndarray:
+    """The residuals' covariance C[dy, dx, c, c'] = E r_c(p) r_c'(p + (dy, dx)) over lags |dy|, |dx| <=
+    max_lag, pooled over images, each image and channel centred: (2 L + 1, 2 L + 1, 3, 3), lag 0 at
+    the centre."""
+    r = np.asarray(residuals, np.float64)
+    r = r - r.mean(axis=(1, 2), keepdims=True)
+    count, height, width, channels = r.shape
+    size = (2 * height, 2 * width)
+    spectra = _padded_spectra(r, size)
+    cross = np.fft.irfft2(np.einsum("nyxc,nyxd->yxcd", np.conj(spectra), spectra), s=size, axes=(0, 1))
+    overlap = np.fft.irfft2(np.abs(np.fft.rfft2(np.ones((height, width)), s=size)) ** 2, s=size)
+    cross = cross / (count * np.maximum(overlap, 1.0))[..., None, None]
+    lags = np.r_[-max_lag:max_lag + 1]
+    return cross[np.ix_(lags % size[0], lags % size[1])]
+
+
+def pose_power(residuals: np.ndarray, directions: np.ndarray, max_lag: int = 12) -> float:
+    """The sandwich power beta = sum sigma^2 g'g / sum g'Cg (module docstring) of image directions
+    ``directions`` (N, P, H, W, 3) -- the renders' changes along P pose parameters of each of N
+    images -- under the residuals' covariance over lags up to ``max_lag``. Clipped to 1, the power
+    of independent residuals: no adjustment makes the likelihood sharper than that."""
+    covariance = lag_covariance(residuals, max_lag)
+    sigma2 = float(np.mean(np.diagonal(covariance[max_lag, max_lag])))
+    g = np.asarray(directions, np.float64)
+    g = g.reshape((-1,) + g.shape[2:])
+    height, width = g.shape[1:3]
+    size = (height + max_lag + 1, width + max_lag + 1)
+    spectra = _padded_spectra(g, size)
+    # the directions' own cross-correlation over lags, channels apart: A[dy, dx, c, c'] = sum_p g_c(p) g_c'(p + d)
+    auto = np.fft.irfft2(np.einsum("nyxc,nyxd->yxcd", np.conj(spectra), spectra), s=size, axes=(0, 1))
+    lags = np.r_[-max_lag:max_lag + 1]
+    auto = auto[np.ix_(lags % size[0], lags % size[1])]
+    quadratic = float(np.sum(auto * covariance))
+    return float(min(1.0, sigma2 * float(np.sum(g * g)) / max(quadratic, 1e-300)))

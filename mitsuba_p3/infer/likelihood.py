@@ -37,10 +37,11 @@ import numpy as np
 from ..fit.features import Channel, neural_distance, selected_features
 
 LIKELIHOODS = ("p3", "np3")
-# fitted: the Gaussian noise fitted to the train residuals (sigma, power); robust: the fitted
-# inlier/outlier mixture; spectral: the correlated Gaussian field fitted to the train residual windows;
-# paper: sigma 1 (:mod:`mitsuba_p3.fit.noise` says why fitted is Gaussian)
-NOISES = ("fitted", "robust", "spectral", "paper")
+# fitted: the Gaussian noise fitted to the train residuals (sigma, power 1 / correlation area); sandwich:
+# the same Gaussian at the composite likelihood's power along the pose; robust: the fitted inlier/outlier
+# mixture; spectral: the correlated Gaussian field fitted to the train residual windows; paper: sigma 1
+# (:mod:`mitsuba_p3.fit.noise` says why fitted is Gaussian, and what each power is)
+NOISES = ("fitted", "sandwich", "robust", "spectral", "paper")
 
 
 @dataclass(frozen=True)

@@ -159,6 +159,9 @@ def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | No
       with that sigma; the paper used 0.35 on its dark set);
     - ``fitted``: the fit's ``noise`` stage, in its Gaussian form: sigma the train residuals' RMS,
       their correlation's power beta, renders with hard shadows as in that fit;
+    - ``sandwich``: the same Gaussian at the power the composite likelihood's sandwich adjustment
+      gives along the object's pose and size (the outline's evidence divided by a correlation length,
+      not an area);
     - ``robust``: the same stage's inlier/outlier mixture (sigma, outlier weights, beta, shadows);
     - ``spectral``: the same stage's correlated Gaussian field (the residual windows' power spectrum and
       the power of what correlation whitening leaves), renders with hard shadows.
@@ -173,6 +176,11 @@ def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | No
     if noise == "robust":
         return LikelihoodConfig(kind=kind, sigma=model.sigma, outlier=model.outlier,
                                 object_outlier=model.object_outlier, power=model.power, shadows=model.shadows)
+    if noise == "sandwich":
+        if model.pose_power is None or model.gaussian_sigma is None:
+            raise ConfigError(f"{fitted.root} has no sandwich power; refit its noise stage: "
+                              f"mitsuba-p3 fit DATASET --out {fitted.root} --stages noise")
+        return LikelihoodConfig(kind=kind, sigma=model.gaussian_sigma, power=model.pose_power, shadows=model.shadows)
     if noise == "spectral":
         if model.spectral_power is None:
             raise ConfigError(f"{fitted.root} has no spectral noise form; refit its noise stage: "
