@@ -125,6 +125,10 @@ def main() -> None:
                    "size_right": size_class(scale, sizes) == shot.cls.size,
                    "log_p_true_shape": float(np.log(max(weights[shot.cls.shape], 1e-12))),
                    "position_error_mm": 1000 * float(np.linalg.norm(shift.mean(axis=0) - shot.position[:2])),
+                   # p(shiny): the specular weight above the prior's threshold (the SMC's statistic), a
+                   # proxy of the material kind (the attributes' rule also weighs the Phong misfit)
+                   "material_right": bool((sum(h["weight"] * h["shiny"] for h in run.statistics["hypotheses"].values())
+                                           > 0.5) == (shot.cls.material == "metal")),
                    "temperatures": int(run.statistics["temperatures"]), "forced": run.statistics["forced"],
                    "seconds": seconds}
             rows.append(row)
@@ -137,6 +141,8 @@ def main() -> None:
         report[form] = {"shape": float(np.mean([r["shape_right"] for r in rows])),
                         "size": float(np.mean([r["size_right"] for r in rows])),
                         "mean_log_p_true_shape": float(np.mean([r["log_p_true_shape"] for r in rows])),
+                        "material_kind_p_shiny": float(np.mean([r["material_right"] for r in rows
+                                                                if "material_right" in r] or [np.nan])),
                         "mean_position_error_mm": float(np.mean([r["position_error_mm"] for r in rows])),
                         "median_temperatures": float(np.median([r["temperatures"] for r in rows])),
                         "forced": float(np.mean([r["forced"] for r in rows])),
