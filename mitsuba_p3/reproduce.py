@@ -21,8 +21,9 @@ fits and per-image posteriors already on disk are reused. Writes, in ``out``:
 - ``timing.json``: the minutes of every benchmark of every invocation (generating and fitting, evaluating,
   the posterior figure and tables: together the invocation's wall time).
 
-The default likelihood is each model's fitted noise model, sampled by SMC (its runs go to
-``runs/V-fitted``); the paper's (``noise="paper"``, sigma 1, MH at the evaluation preset)
+The default likelihood is each model's fitted Gaussian noise at the power 1 / correlation area
+(:data:`~mitsuba_p3.infer.likelihood.DEFAULT_NOISE`), sampled by SMC (its runs go to
+``runs/V-fitted``; another of the model's noise models to ``runs/V-NOISE``); the paper's (``noise="paper"``, sigma 1, MH at the evaluation preset)
 to ``runs/V``, with another sigma to ``runs/V-sigmaS``; each gets its own rows. Another
 distance scores the same posteriors and its tables go to
 ``runs/V/distance-TERMS`` (rows such as "NP3 (colour+class)"). Baselines
@@ -47,7 +48,7 @@ from .errors import ConfigError, EvaluationError
 from .evaluate import SETTINGS, EvaluationConfig, evaluate, load_baselines, markdown_table, setting_name
 from .evaluate.run import sample_spread
 from .files import atomic_json, atomic_open, atomic_write
-from .infer.likelihood import NOISES
+from .infer.likelihood import DEFAULT_NOISE, NOISES
 
 PAPER_ACCURACY = {  # shared/PAPER_NOTES.md: 5w1s / 5w5s / 10w1s / 10w5s (their data sets)
     "MAML 56": {"fsclvr": "77.0/87.5/62.8/69.8", "room": "77.9/79.2/47.2/61.5", "dark": "79.6/86.2/60.4/62.8",
@@ -69,7 +70,7 @@ ATTRIBUTES = {"shape_accuracy": "shape", "shape_accuracy_large": "shape (large)"
 
 @dataclass(frozen=True)
 class ReproduceConfig:
-    """Which benchmarks, and how each is evaluated (by default: the fitted noise model and SMC;
+    """Which benchmarks, and how each is evaluated (by default: the model's fitted noise model and SMC;
     the paper's rows need ``EvaluationConfig(noise="paper", sampler=PRESET)``)."""
 
     benchmarks: tuple = COLUMNS
@@ -225,11 +226,11 @@ def example_shot(dataset):
 
 
 def posterior_figure_name(variant: str, sigma: float | str | None) -> str:
-    """``posterior-V.png`` for the headline run (the fitted noise model), ``posterior-V-paper.png``
+    """``posterior-V.png`` for the headline run (the default noise model), ``posterior-V-paper.png``
     for the paper's likelihood and ``posterior-RUN.png`` for any other run of the benchmark, so that
     a run with other settings does not overwrite the headline's figure."""
     name = run_name(variant, sigma)
-    if name == run_name(variant, "fitted"):
+    if name == run_name(variant, DEFAULT_NOISE):
         return f"posterior-{variant}.png"
     return f"posterior-{variant}-paper.png" if name == variant else f"posterior-{name}.png"
 
@@ -331,7 +332,9 @@ def write_paper_tables(out: Path, results: dict) -> None:
                    for c in evaluated})
     note = ("\nCells: 5-way 1-shot / 5-way 5-shot / 10-way 1-shot / 10-way 5-shot accuracy (%). "
             "OOD has 10 test classes. Rows without a note use the paper's likelihood (sigma 1, no outliers, no "
-            "shadows); 'fitted noise' rows the noise model fitted to each benchmark's train residuals. Rows "
+            "shadows); 'fitted noise' rows the Gaussian noise fitted to each benchmark's train residuals at the power "
+            "1 / their correlation area, 'sandwich noise' rows the same Gaussian at the power along the object's "
+            "outline (the composite likelihood's sandwich adjustment). Rows "
             "without distance terms use all seven of the paper's terms, over programs widened by the concept "
             "spread fitted on train classes unless marked 'no concept spread', each KL turned round "
             "(KL(C_I || C_k)) unless marked 'KL(class || image)', the paper's direction. Sigma and distance "

@@ -9,6 +9,11 @@ half-extents, colour) and the shape posterior's calibration
 histogram's 99% range shaded) and ``OUT/cache.npz``, which a killed run resumes from.
 
     python scripts/sbc.py --model data/models/fsclvr [--images 100] [--draws 99] [--out out/sbc]
+        [--noise fitted|sandwich]
+
+``--noise`` picks the power of the model's Gaussian noise: 1 / correlation area (fitted) or the
+sandwich power along the pose (sandwich); either way the images are simulated at the effective
+sigma / sqrt(power) that inference uses.
 """
 from __future__ import annotations
 
@@ -68,19 +73,23 @@ def main() -> None:
     parser.add_argument("--resolution", default="120x160")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path("out/sbc"))
+    parser.add_argument("--noise", default="fitted", choices=("fitted", "sandwich"))
     args = parser.parse_args()
 
     fitted = FittedModel(args.model)
     noise = fitted.noise
     height, width = (int(v) for v in args.resolution.split("x"))
     # the tempered likelihood inference uses, written as the untempered one it equals: sigma / sqrt(beta)
-    likelihood = LikelihoodConfig("p3", sigma=noise.gaussian_sigma / np.sqrt(noise.power), shadows=noise.shadows)
+    power = noise.power if args.noise == "fitted" else noise.pose_power
+    if power is None:
+        raise SystemExit(f"{args.model} has no sandwich power: refit its noise stage (mitsuba-p3 fit ... --stages noise)")
+    likelihood = LikelihoodConfig("p3", sigma=noise.gaussian_sigma / np.sqrt(power), shadows=noise.shadows)
     core = PosteriorCore(fitted, likelihood, "mitsuba", height, width)
     args.out.mkdir(parents=True, exist_ok=True)
     result = run_sbc(core, smc_sampler(core, SMCConfig(particles=args.particles)), args.images, args.draws,
                      args.seed, cache=args.out / "cache.npz",
                      progress=lambda i, n: print(f"sbc {i}/{n}", flush=True))
-    summary = {"model": args.model, "likelihood_sigma": likelihood.sigma, **result.summary()}
+    summary = {"model": args.model, "noise": args.noise, "likelihood_sigma": likelihood.sigma, **result.summary()}
     atomic_json(args.out / "sbc.json", summary)
     plot_ranks(summary, args.out / "ranks.png")
     print(json.dumps({k: v for k, v in summary.items() if k != "rank_counts"}, indent=2))

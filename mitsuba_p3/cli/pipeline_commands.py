@@ -10,6 +10,7 @@ import typer
 
 from ..concepts import DistanceConfig
 from ..evaluate.config import PRESET
+from ..infer.likelihood import DEFAULT_NOISE
 from ..infer.mcmc import SamplerConfig
 from ..infer.smc import SMCConfig
 from .app import app, parse_resolution, phase_progress_bar, progress_bar, sampler_option
@@ -97,7 +98,7 @@ def infer(
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
     bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge", help=BRIDGE_HELP),
     likelihood: str = typer.Option("np3", help="p3 (colour) or np3 (colour + neural)."),
-    noise: str = typer.Option("fitted", help=NOISE_HELP),
+    noise: str = typer.Option(DEFAULT_NOISE, help=NOISE_HELP),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
                                                      "dark set)."),
     renderer: str = typer.Option("mitsuba", help="mitsuba (pure_callback) or jax (native tracer)."),
@@ -148,8 +149,8 @@ def evaluate(
     sampler: str = typer.Option("auto", help=SAMPLER_HELP_TEXT),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
     bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge", help=BRIDGE_HELP),
-    noise: str = typer.Option("fitted", help=NOISE_HELP + " fitted, chosen on held-out train classes "
-                                             "(docs/notebook.md); paper reproduces the paper's rows."),
+    noise: str = typer.Option(DEFAULT_NOISE, help=NOISE_HELP + f" {DEFAULT_NOISE}, chosen on train classes "
+                                                  "(docs/notebook.md); paper reproduces the paper's rows."),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
                                                      "dark set)."),
     distance: str = typer.Option("all", help="Distance terms: 'all' (the paper's) or some joined by '+', e.g. "
@@ -206,7 +207,8 @@ def reproduce(
         "multi-chain Metropolis-Hastings", "the evaluation preset")),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
     bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge", help=BRIDGE_HELP),
-    noise: str = typer.Option("fitted", help=NOISE_HELP + " Runs go to runs/V-fitted (fitted), runs/V (paper)."),
+    noise: str = typer.Option(DEFAULT_NOISE, help=NOISE_HELP + " Runs go to runs/V-NOISE (e.g. runs/V-sandwich), "
+                                                  "runs/V (paper)."),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma; runs go to "
                                                      "runs/V-sigmaS."),
     distance: str = typer.Option("all", help="Distance terms: 'all' or e.g. colour+class (tables in "

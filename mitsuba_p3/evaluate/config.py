@@ -5,7 +5,7 @@ from dataclasses import asdict, dataclass, field
 
 from ..concepts import DistanceConfig
 from ..errors import ConfigError, check_counts
-from ..infer.likelihood import LIKELIHOODS, NOISES, LikelihoodConfig
+from ..infer.likelihood import DEFAULT_NOISE, LIKELIHOODS, NOISES, LikelihoodConfig
 from ..infer.mcmc import SamplerConfig
 from ..infer.smc import SMCConfig
 from ..render import RENDERERS
@@ -19,9 +19,10 @@ PRESET = SamplerConfig(chains=8, steps=200, burn_in=30, tune_rounds=3, tune_step
 class EvaluationConfig:
     likelihoods: tuple = ("p3", "np3")
     sigma: float | None = None   # colour-likelihood sigma in the paper's form; None: as ``noise`` says
-    # fitted (the default; chosen on held-out train classes, docs/notebook.md): the model's Gaussian noise
-    # model with hard shadows; robust: its inlier/outlier mixture; paper: sigma 1, no shadows
-    noise: str = "fitted"
+    # the model's noise models (fitted, the default, chosen on train classes, and sandwich: its Gaussian
+    # with hard shadows at two powers; robust: its inlier/outlier mixture; spectral: its correlated
+    # field) or the paper's (sigma 1, no shadows): :data:`mitsuba_p3.infer.likelihood.NOISES`
+    noise: str = DEFAULT_NOISE
     renderer: str = "mitsuba"
     sampler: SamplerConfig | SMCConfig = field(default_factory=SMCConfig)
     episodes: int = 100          # per N-way K-shot setting

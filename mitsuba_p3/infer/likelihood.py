@@ -42,6 +42,9 @@ LIKELIHOODS = ("p3", "np3")
 # mixture; spectral: the correlated Gaussian field fitted to the train residual windows; paper: sigma 1
 # (:mod:`mitsuba_p3.fit.noise` says why fitted is Gaussian, and what each power is)
 NOISES = ("fitted", "sandwich", "robust", "spectral", "paper")
+# the noise model infer, evaluate and reproduce use unless told otherwise (chosen on train classes:
+# docs/notebook.md, "A likelihood that keeps the outline")
+DEFAULT_NOISE = "fitted"
 
 
 @dataclass(frozen=True)
