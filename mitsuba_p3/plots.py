@@ -272,6 +272,27 @@ def trace_plot(idata, path: str | Path, variables: Sequence[str] = ("shift", "sc
     return save_figure(fig, path)
 
 
+def island_evidence(hypotheses: dict, path: str | Path) -> Path:
+    """An SMC posterior's own diagnostic: each independent run's log evidence per hypothesis (dots),
+    their pooled estimate (bar) and the posterior weight. Runs of one hypothesis that disagree by more
+    than a few nats found different poses: the answer then depends on the seed."""
+    plt = _pyplot()
+    names = list(hypotheses)
+    figure, ax = plt.subplots(figsize=(1.2 + 1.1 * len(names), 3.2))
+    for i, name in enumerate(names):
+        runs = hypotheses[name].get("island_log_evidence") or []
+        ax.hlines(hypotheses[name]["log_evidence"], i - 0.3, i + 0.3, color="C0", lw=2)
+        ax.plot(np.full(len(runs), i, float) + np.linspace(-0.15, 0.15, len(runs)), runs, "o", color="C1", ms=5)
+        gap = f"\ngap {max(runs) - min(runs):.1f}" if len(runs) > 1 else ""
+        ax.annotate(f"p = {hypotheses[name]['weight']:.2f}{gap}", (i, hypotheses[name]["log_evidence"]),
+                    textcoords="offset points", xytext=(0, 8), ha="center", fontsize=7)
+    ax.set_xticks(range(len(names)), names, fontsize=8)
+    ax.set_ylabel("log evidence (nats)")
+    ax.set_title("SMC runs per hypothesis (bar: pooled; dots: independent runs)", fontsize=8)
+    figure.tight_layout()
+    return save_figure(figure, path)
+
+
 def reliability_diagram(path: str | Path, results: dict, settings: Sequence[str]) -> Path:
     """Accuracy against confidence per few-shot setting, one line per model (``results``: model ->
     its evaluation results, whose accuracy per setting carries the reliability bins; a lower-case

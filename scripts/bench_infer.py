@@ -13,6 +13,9 @@ run resumes), then prints JSON, the settings side by side:
   shape (all, large), material kind, size, colour, mean log p(true shape), shape ECE; the
   material kind also by the rule ``evaluate`` uses when the run holds train posteriors
   (``mitsuba-p3 evaluate ... --out OUT/smc-seed0`` adds them), learnt from those posteriors;
+- ``convergence`` within the first seed's run (:func:`mitsuba_p3.evaluate.run.convergence`): the
+  median R-hat across MH chains, or SMC's island gap (the spread of the leading hypothesis's
+  independent runs' log evidence: median, p90, share above 10 nats);
 - ``max_r_hat_across_seeds``: per image, the R-hat of shift, scale and colour with each
   seed's run as one chain; the median and the 90th percentile over images;
 - ``log_evidence_spread``: for samplers that estimate an evidence (none of the MH settings), per
@@ -49,6 +52,7 @@ from mitsuba_p3.evaluate import (PRESET, CachedPosterior, EvaluationConfig, chec
                                  posterior_path)
 from mitsuba_p3.evaluate.jobs import PosteriorMisfits, rules_with_train_posteriors
 from mitsuba_p3.evaluate.metrics import attribute_recovery
+from mitsuba_p3.evaluate.run import convergence
 from mitsuba_p3.fit.attributes import rules_for
 from mitsuba_p3.fit.model import FittedModel
 from mitsuba_p3.infer.smc import SMCConfig
@@ -151,7 +155,8 @@ def main() -> None:
         entry = {"sampler": asdict(sampler), "seconds_per_image": float(np.median(seconds)),
                  "run_seconds_per_image": run_seconds,
                  **{k: round(v, 4) for k, v in recovered.items()},
-                 "max_r_hat_within_run_median": float(np.median([p.max_r_hat for p in runs[0].values()])),
+                 # each sampler's own within-run diagnostic: R-hat across MH chains, SMC's island gap
+                 **convergence(runs[0].values()),
                  "log_evidence_spread": _evidence_spread(runs)}
         entry["seeds"] = seeds
         if seeds > 1:

@@ -179,8 +179,11 @@ def test_cli_infer_writes_posterior_and_figures(fitted, observed, tmp_path):
     assert result.returncode == 0, result.stderr
     written = json.loads(result.stdout[result.stdout.index("{"):])
     for key in ("posterior", "summary", "estimate", "figure_renders", "figure_translation", "figure_colour",
-                "figure_trace"):
+                "figure_runs"):        # SMC (the fitted noise's sampler): the runs' evidence, not a trace plot
         assert (tmp_path / "out" / written[key].split("/")[-1]).is_file()
+    assert "figure_trace" not in written
+    diagnostics = json.loads((tmp_path / "out" / "estimate.json").read_text())["diagnostics"]
+    assert "max_r_hat" not in diagnostics and "island_gap" in diagnostics
     bad = subprocess.run([sys.executable, "-m", "mitsuba_p3.cli", "infer", str(tmp_path / "obs.png"), "--model",
                           str(fitted.root), "-o", str(tmp_path / "x"), "--likelihood", "p4"],
                          capture_output=True, text=True, timeout=300)
@@ -424,6 +427,28 @@ def test_footprint_start_weights_average_to_one(fitted):
     assert near.mean() > 0.5
 
 
+def test_island_gap_and_convergence_report_each_samplers_own_diagnostic():
+    """The island gap is the spread of the leading hypothesis's runs (None with one run); a run's
+    convergence figures are R-hat over MH posteriors only and the gap over SMC ones: an SMC cache
+    holding an R-hat of its pooled draws (made before the pool stopped being cut into chains) is not
+    reported, so the figure can fail where the runs disagree."""
+    from types import SimpleNamespace
+
+    from mitsuba_p3.evaluate.run import convergence
+    from mitsuba_p3.infer.smc import island_gap
+
+    stats = {"hypotheses": {"sphere": {"weight": 0.9, "island_log_evidence": [100.0, 88.5]},
+                            "cube": {"weight": 0.1, "island_log_evidence": [90.0, 90.1]}}}
+    assert island_gap(stats) == pytest.approx(11.5)
+    assert island_gap({"hypotheses": {"sphere": {"weight": 1.0, "island_log_evidence": [3.0]}}}) is None
+    smc = [SimpleNamespace(max_r_hat=1.01, island_gap=gap, log_evidence=np.zeros(3)) for gap in (0.4, 0.6, 25.0)]
+    mh = [SimpleNamespace(max_r_hat=r, island_gap=float("nan"), log_evidence=None) for r in (1.01, 1.3)]
+    figures = convergence(smc)
+    assert "max_r_hat_median" not in figures and figures["island_gap_median"] == pytest.approx(0.6)
+    assert figures["island_gap_over_10"] == pytest.approx(1 / 3)
+    assert convergence(mh) == {"max_r_hat_median": pytest.approx(1.155)}
+
+
 def test_systematic_resampling_follows_the_weights():
     from mitsuba_p3.infer.smc import systematic_resample
 
@@ -505,6 +530,11 @@ def test_smc_runs_every_hypothesis_and_keeps_their_evidence(fitted, tmp_path, ki
     assert posterior.estimate()["shape"] in shapes
     saved = Posterior.load(posterior.save(tmp_path / "p.nc"))
     assert json.loads(saved.idata.posterior.attrs["hypotheses"]) == hypotheses
+    # one pool of draws, no fabricated chains or acceptances: R-hat is undefined, the runs' gap is kept
+    assert saved.sampler == "smc" and saved.idata.posterior.sizes["chain"] == 1
+    assert "accepted" not in saved.idata.sample_stats and np.isnan(saved.summary()["r_hat"]).all()
+    assert all(len(v["island_log_evidence"]) == v["runs"] for v in hypotheses.values())
+    assert (saved.statistic("island_gap") is None) == (islands == 1 and rounds == 1)
 
 
 def test_bridge_from_p3_adds_the_neural_terms_evidence(fitted):

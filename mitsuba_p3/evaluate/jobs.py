@@ -126,6 +126,8 @@ def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str,
                   shift=np.asarray(estimate["shift"], np.float64), yaw=np.float64(estimate["theta"]),
                   kappa=np.int64(estimate["kappa"]), seconds=np.float64(seconds),
                   max_r_hat=np.float64(summary["r_hat"].max()), min_ess=np.float64(summary["ess_bulk"].min()),
+                  island_gap=np.float64(np.nan if posterior.statistic("island_gap") is None
+                                        else posterior.statistic("island_gap")),
                   render_threads=np.int64(_render_threads()), **_evidence(posterior),
                   **(_particle_arrays(posterior.particles) if likelihood == "p3" else {}))
     return out
@@ -182,10 +184,11 @@ class CachedPosterior:
     yaw: float
     kappa: int
     seconds: float
-    max_r_hat: float
+    max_r_hat: float              # across MH chains (NaN for SMC: one pool has no R-hat)
     min_ess: float
     log_evidence: np.ndarray | None = None       # per hypothesis the SMC weighed (shape classes by default)
     shift_samples: np.ndarray | None = None      # (n, 2) posterior draws of the position (newer caches)
+    island_gap: float = float("nan")             # SMC: spread of the leading hypothesis's runs' log Z (nats)
 
     @property
     def pose(self) -> dict:
@@ -201,7 +204,8 @@ class CachedPosterior:
             return cls(ProtoProgram(samples, max_points), f["shift"], float(f["yaw"]), int(f["kappa"]),
                        float(f["seconds"]), float(f["max_r_hat"]), float(f["min_ess"]),
                        f["log_evidence"] if "log_evidence" in f.files else None,
-                       f["sample_shift"].astype(np.float64) if "sample_shift" in f.files else None)
+                       f["sample_shift"].astype(np.float64) if "sample_shift" in f.files else None,
+                       float(f["island_gap"]) if "island_gap" in f.files else float("nan"))
 
 
 def cached_train_posteriors(dataset: Dataset, run_dir: Path, likelihood: str,

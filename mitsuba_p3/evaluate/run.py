@@ -159,7 +159,7 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
             results[likelihood] = {
                 "accuracy": accuracy, "adi_per_class": per_class, "adi": overall, "attributes": recovered,
                 "seconds_per_image": float(np.mean([c.seconds for c in cached.values()])),
-                "max_r_hat_median": float(np.median([c.max_r_hat for c in cached.values()])),
+                **convergence(cached.values()),
             }
         out = tables_dir(run_dir, config.distance)
         out.mkdir(parents=True, exist_ok=True)
@@ -177,3 +177,24 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
                                            "distance": list(config.distance.properties),
                                            "kl": config.distance.direction, "files": files})
         return results
+
+
+def convergence(cached) -> dict:
+    """What shows each sampler's own failure, over a run's posteriors: MH's R-hat across chains (the
+    median of each posterior's largest); SMC's island gap, the spread of the leading hypothesis's
+    independent runs' log evidence (median, 90th percentile, share above 10 nats). A figure that
+    cannot be made (no MH posterior, or SMC caches from before the gap was kept) is left out."""
+    import numpy as np
+
+    cached = list(cached)
+    # an SMC cache (it has log evidence) made before SMC stopped cutting its pool into chains holds an
+    # R-hat of that pool: not a diagnostic, so not reported
+    r_hats = [c.max_r_hat for c in cached if c.log_evidence is None and np.isfinite(c.max_r_hat)]
+    gaps = [c.island_gap for c in cached if np.isfinite(c.island_gap)]
+    out = {}
+    if r_hats:
+        out["max_r_hat_median"] = float(np.median(r_hats))
+    if gaps:
+        out.update({"island_gap_median": float(np.median(gaps)), "island_gap_p90": float(np.percentile(gaps, 90)),
+                    "island_gap_over_10": float(np.mean(np.asarray(gaps) > 10.0))})
+    return out

@@ -105,7 +105,7 @@ class Target(NamedTuple):
 class SamplerRun(NamedTuple):
     positions: np.ndarray         # (chains, draws, 15) unconstrained
     logdensity: np.ndarray        # (chains, draws)
-    accepted: np.ndarray          # (chains, draws) bool
+    accepted: np.ndarray | None   # (chains, draws) bool; None for SMC (its draws are resampled, not accepted)
     proposal: dict                # the final proposal: per-mode means, Cholesky factors, known flags
     tuning: list                  # per round: acceptance rates, factor, restarts, modes known
     config: dict

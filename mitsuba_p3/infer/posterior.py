@@ -62,8 +62,24 @@ class Posterior:
         out["class_frequencies"] = dict(zip(SHAPES, frequencies.tolist()))
         return out
 
+    @property
+    def sampler(self) -> str:
+        """``smc`` or ``mh``: which sampler made the draws (their diagnostics differ)."""
+        config = self.idata.posterior.attrs.get("sampler", "{}")
+        return (json.loads(config) if isinstance(config, str) else config).get("sampler", "mh")
+
+    def statistic(self, name: str, default=None):
+        """A sampler statistic kept in the posterior's attributes (e.g. SMC's ``island_gap``)."""
+        value = self.idata.posterior.attrs.get(name, default)
+        try:
+            return json.loads(value) if isinstance(value, str) else value
+        except json.JSONDecodeError:
+            return value
+
     def summary(self):
-        """ArviZ summary (mean, sd, HDI, ESS, R-hat) of the constrained variables."""
+        """ArviZ summary (mean, sd, HDI, ESS, R-hat) of the constrained variables. R-hat is across MH
+        chains; an SMC posterior is one pool of resampled draws, so its R-hat is undefined (NaN) and
+        its run-to-run agreement is :meth:`statistic` ``island_gap``."""
         import arviz as az
 
         return az.summary(self.idata, var_names=list(SUMMARY_VARIABLES), round_to="none")
@@ -106,7 +122,7 @@ def to_inference_data(model: PosteriorModel, run: SamplerRun, observed: np.ndarr
     idata = az.from_dict(
         posterior=posterior,
         log_likelihood={"image": run.logdensity - shape(log_prior)},
-        sample_stats={"lp": run.logdensity, "accepted": run.accepted},
+        sample_stats={"lp": run.logdensity, **({} if run.accepted is None else {"accepted": run.accepted})},
         observed_data={"image": observed},
         dims={**dims, "image": ["row", "column", "channel"]}, coords=coords,
     )
@@ -144,7 +160,8 @@ def infer_image(fitted: FittedModel, observed: np.ndarray, likelihood: Likelihoo
     info = {"model": str(fitted.root), "likelihood": likelihood.kind, "sigma": likelihood.sigma,
             "noise": asdict(likelihood),
             "renderer": renderer, "sampler": run.config, "tuning": run.tuning,
-            "acceptance": float(run.accepted.mean()), **run.statistics,
+            "acceptance": float(run.accepted.mean() if run.accepted is not None else
+                                run.statistics.get("walk_acceptance", np.nan)), **run.statistics,
             "seconds": seconds, **(attrs or {})}      # all of this call's (an NP3 run's includes P3's)
     posterior = to_inference_data(model, run, observed, info)
     posterior.particles = run.particles

@@ -66,7 +66,13 @@ def write_report(posterior: Posterior, fitted: FittedModel, out: str | Path, ren
     summary.to_csv(out / "summary.csv")
     written["summary"] = str(out / "summary.csv")
     estimate = posterior.estimate()
-    diagnostics = {"max_r_hat": float(summary["r_hat"].max()), "min_ess_bulk": float(summary["ess_bulk"].min())}
+    if posterior.sampler == "smc":
+        # one pool of resampled draws: no R-hat; the independent runs' agreement instead
+        diagnostics = {"island_gap": posterior.statistic("island_gap"),
+                       "temperatures": posterior.statistic("temperatures"),
+                       "forced": posterior.statistic("forced")}
+    else:
+        diagnostics = {"max_r_hat": float(summary["r_hat"].max()), "min_ess_bulk": float(summary["ess_bulk"].min())}
     attrs = dict(posterior.idata.posterior.attrs)
     estimate_file = out / "estimate.json"
     draws = {name: posterior.draws(name) for name in ("scale", "colour", "ambient", "diffuse", "specular", "shininess")}
@@ -96,5 +102,8 @@ def write_report(posterior: Posterior, fitted: FittedModel, out: str | Path, ren
         posterior.draws("shift"), out / "translation.png", truth=(truth or {}).get("shift")))
     written["figure_colour"] = str(plots.colour_posterior(posterior.draws("colour"), out / "colour.png",
                                                           truth=(truth or {}).get("colour")))
-    written["figure_trace"] = str(plots.trace_plot(posterior.idata, out / "trace.png"))
+    if posterior.sampler == "smc":
+        written["figure_runs"] = str(plots.island_evidence(posterior.statistic("hypotheses"), out / "runs.png"))
+    else:
+        written["figure_trace"] = str(plots.trace_plot(posterior.idata, out / "trace.png"))
     return written

@@ -637,14 +637,15 @@ def _sampler_run(core, rows: Rows, pooled: np.ndarray, space: Hypotheses, config
         if mine.any():
             row_weights[mine] = weights[h] * np.exp(rows.log_evidence[mine]
                                                     - np.logaddexp.reduce(rows.log_evidence[mine]))
-    # draws: rows by their posterior weight, particles uniformly (equal weights after resampling)
+    # draws: rows by their posterior weight, particles uniformly (equal weights after resampling). One
+    # pool, not chains: draws cut from one pool would agree by construction, so no R-hat is made of
+    # them; the runs' agreement is the island gap below (and R-hat across seeds, scripts/bench_infer.py)
     z, loglik, logprior = rows.state
-    chains = 4
-    per_chain = max(1, config.draws // chains)
-    chosen_row = rng.choice(len(row_weights), size=chains * per_chain, p=row_weights / row_weights.sum())
-    chosen_n = rng.integers(config.particles, size=chains * per_chain)
-    positions = z[chosen_row, chosen_n].reshape(chains, per_chain, -1)
-    logdensity = (logprior + loglik)[chosen_row, chosen_n].reshape(chains, per_chain)
+    draws = max(1, config.draws)
+    chosen_row = rng.choice(len(row_weights), size=draws, p=row_weights / row_weights.sum())
+    chosen_n = rng.integers(config.particles, size=draws)
+    positions = z[chosen_row, chosen_n].reshape(1, draws, -1)
+    logdensity = (logprior + loglik)[chosen_row, chosen_n].reshape(1, draws)
     shiny_rows = (z[..., SLICES["specular"].start] > core.prior.specular_threshold()).mean(axis=1)
     statistics = {"hypotheses": {}, "rounds": rounds, "temperatures": rows.temperatures,
                   "window": list(window) if window else None,
@@ -659,7 +660,21 @@ def _sampler_run(core, rows: Rows, pooled: np.ndarray, space: Hypotheses, config
                                           "runs": int(mine.sum()),
                                           # the highest log likelihood any final particle reached: beside the
                                           # likelihood at the truth it tells a run that missed the peak
-                                          "max_log_likelihood": float(best.max()) if best.size else None}
-    return SamplerRun(positions.astype(np.float32), logdensity.astype(np.float32),
-                      np.ones((chains, per_chain), bool), {}, [{"acceptance": a} for a in rows.acceptance],
+                                          "max_log_likelihood": float(best.max()) if best.size else None,
+                                          # each run's own estimate of log Z_h: their spread is the Monte
+                                          # Carlo error of the evidence that decides the hypotheses
+                                          "island_log_evidence": rows.log_evidence[mine].tolist()}
+    statistics["island_gap"] = island_gap(statistics)
+    return SamplerRun(positions.astype(np.float32), logdensity.astype(np.float32), None, {},
+                      [{"acceptance": a} for a in rows.acceptance],
                       {"sampler": "smc", **asdict(config)}, statistics, Particles(rows, window))
+
+
+def island_gap(statistics: dict) -> float | None:
+    """The spread (max - min, nats) of the leading hypothesis's runs' log evidence: how far two
+    independent SMC runs of the answer disagree. About sqrt(T / N) nats when they explored alike; tens
+    of nats when one run missed the pose the other found. None with a single run."""
+    hypotheses = statistics["hypotheses"]
+    leader = max(hypotheses, key=lambda name: hypotheses[name]["weight"])
+    runs = hypotheses[leader].get("island_log_evidence") or []
+    return float(max(runs) - min(runs)) if len(runs) > 1 else None
