@@ -286,6 +286,8 @@ def island_evidence(hypotheses: dict, path: str | Path) -> Path:
         gap = f"\ngap {max(runs) - min(runs):.1f}" if len(runs) > 1 else ""
         ax.annotate(f"p = {hypotheses[name]['weight']:.2f}{gap}", (i, hypotheses[name]["log_evidence"]),
                     textcoords="offset points", xytext=(0, 8), ha="center", fontsize=7)
+    low, high = ax.get_ylim()
+    ax.set_ylim(low, high + 0.2 * (high - low))          # room for the labels above the highest
     ax.set_xticks(range(len(names)), names, fontsize=8)
     ax.set_ylabel("log evidence (nats)")
     ax.set_title("SMC runs per hypothesis (bar: pooled; dots: independent runs)", fontsize=8)

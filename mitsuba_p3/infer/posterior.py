@@ -82,7 +82,10 @@ class Posterior:
         its run-to-run agreement is :meth:`statistic` ``island_gap``."""
         import arviz as az
 
-        return az.summary(self.idata, var_names=list(SUMMARY_VARIABLES), round_to="none")
+        if self.sampler != "smc":
+            return az.summary(self.idata, var_names=list(SUMMARY_VARIABLES), round_to="none")
+        table = az.summary(self.idata, var_names=list(SUMMARY_VARIABLES), round_to="none", kind="stats")
+        return table.assign(ess_bulk=np.nan, r_hat=np.nan)   # one pool: no chains to compare
 
     def save(self, path: str | Path) -> Path:
         """Write netCDF atomically."""
