@@ -101,9 +101,23 @@ def atomic_write(path: str | Path, data: bytes | str) -> Path:
     return Path(path)
 
 
+def finite_json(value):
+    """``value`` with every non-finite float (NaN, infinity) as None: JSON has no NaN, and a bare
+    ``NaN`` in a file makes it unreadable to strict parsers."""
+    if isinstance(value, float):
+        return value if np.isfinite(value) else None
+    if isinstance(value, np.floating):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: finite_json(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_json(item) for item in value]
+    return value
+
+
 def atomic_json(path: str | Path, value, indent: int = 1) -> Path:
-    """Write ``value`` as JSON atomically."""
-    return atomic_write(path, json.dumps(value, indent=indent, default=str))
+    """Write ``value`` as strict JSON atomically (non-finite numbers as null)."""
+    return atomic_write(path, json.dumps(finite_json(value), indent=indent, default=str, allow_nan=False))
 
 
 def atomic_npz(path: str | Path, compressed: bool = False, **arrays) -> Path:

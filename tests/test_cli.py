@@ -123,3 +123,30 @@ def test_time_left_of_a_resumed_run_counts_only_its_own_work(capsys, monkeypatch
             update(done, 200)
     lines = capsys.readouterr().err.splitlines()
     assert lines == ["train: 100/200 after 1.0 min", "train: 110/200 after 2.0 min, about 9.0 min left"]
+
+
+@pytest.mark.parametrize("command", [["fit", "DATA", "--out", "MODEL", "--stages", ","],
+                                     ["baseline", "train", "protonets", "DATA", "--out", "TRAINED", "--iterations", "0"]])
+def test_an_empty_count_or_list_is_refused_not_read_as_the_default(tmp_path, command):
+    """``fit --stages ','`` named no stage (it said "no model.json"); ``baseline train --iterations 0``
+    meant 20000 iterations. Both are refused in one line before any work."""
+    from mitsuba_p3.benchmarks.generate import generate
+
+    data = tmp_path / "data"
+    generate("fsclvr", data, seed=1, size="small", resolution=(12, 16), spp=1)
+    paths = {"DATA": data, "MODEL": tmp_path / "model", "TRAINED": tmp_path / "trained"}
+    done = run(*[paths.get(part, part) for part in command])
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode != 0 and len(lines) == 1 and lines[0].startswith("error:"), done.stderr
+    assert not (tmp_path / "trained" / "checkpoint.json").exists()
+
+
+def test_json_files_hold_no_bare_nan(tmp_path):
+    """Every JSON the project writes is strict: a NaN or infinity becomes null."""
+    import json
+
+    from mitsuba_p3.files import atomic_json
+
+    path = atomic_json(tmp_path / "r.json", {"a": float("nan"), "b": [np.float32(np.inf), 1.5], "c": np.float64(2.0)})
+    assert json.loads(path.read_text(), parse_constant=lambda name: pytest.fail(f"bare {name}")) == {
+        "a": None, "b": [None, 1.5], "c": 2.0}

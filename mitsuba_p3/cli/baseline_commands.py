@@ -35,7 +35,7 @@ def baseline_train(
     if resolution not in (56, 84):
         raise MitsubaP3Error("--resolution must be 56 or 84 (the paper's inputs)")
     config = TrainConfig(method=method, resolution=resolution, k_shot=k_shot, second_order=second_order, seed=seed,
-                         iterations=iterations or DEFAULT_ITERATIONS.get(method, 20000),
+                         iterations=DEFAULT_ITERATIONS.get(method, 20000) if iterations is None else iterations,
                          **{k: v for k, v in (("validation_classes", validation_classes), ("patience", patience))
                             if v is not None})
     bar, update = progress_bar(f"{method} {resolution}")

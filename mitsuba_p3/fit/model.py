@@ -240,6 +240,8 @@ def fit_model(dataset_dir: str | Path, out: str | Path, stages: Sequence[str] = 
     unknown = set(stages) - set(STAGES)
     if unknown:
         raise FitError(f"unknown stage(s) {sorted(unknown)}; choose from {', '.join(STAGES)}")
+    if not stages:
+        raise FitError(f"no stage to run: name at least one of {', '.join(STAGES)} (e.g. --stages noise)")
     scene_config = scene_config or SceneOptConfig()
     dataset = load_dataset(dataset_dir, resolution=tuple(scene_config.resolution))
     root = claim_output_folder(out, MODEL_FILES, "mitsuba-p3 fit")
