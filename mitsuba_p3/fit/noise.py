@@ -89,6 +89,10 @@ renders match the images (high ones: a misplaced edge) keep theirs. Whitened
 train residuals are close to white, and what correlation is left (mostly across
 the three colour channels, which share a shading mismatch) gives this form's own
 power, 1 / (its spatial correlation area x its colour-channel correlation area).
+The spectrum can be shrunk towards white noise, P + lambda mean(P) rescaled to its
+maximum-likelihood level (lambda = 0: the pure field; large lambda: the independent
+Gaussian). The fit writes lambda = 1, the value measured on train images; the form
+is not a default (docs/notebook.md, "A likelihood that keeps the outline").
 """
 from __future__ import annotations
 
@@ -101,7 +105,7 @@ OUTLIER_LOG_DENSITY = -3.0 * np.log(2.0)   # uniform on [-1, 1]^3
 # the spectral noise form is fitted on train windows of this size (and on whole images)
 SCORING_WINDOW = (56, 72)
 SPECTRUM_FILE = "noise_spectrum.npz"
-# lambda of the spectral form's shrinkage towards white noise (see the module docstring)
+# lambda of the spectral form's shrinkage towards white noise (module docstring; measured, not tuned)
 SPECTRAL_SHRINK = 1.0
 
 

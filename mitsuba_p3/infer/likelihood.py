@@ -15,7 +15,10 @@ domain and scored as white noise,
     log p = beta * (-1/2 ||whiten(r)||^2 - 1/2 sum_k log(2 pi P(k)))
 
 so the low-frequency shading mismatch the Phong model always leaves is discounted and
-the edges keep their weight (beta here is the small leftover correlation's power).
+the edges keep their weight (beta here is the small leftover correlation's power). A
+stationary field also discounts a small object's whole appearance, so an object moved
+out of the window can cost less than one a few millimetres off: not a default
+(docs/notebook.md, "A likelihood that keeps the outline").
 
 With eps = 0 and beta = 1 the first form is the paper's likelihood, sigma = 1.0 (0.35 on its
 dark set), a sum of truncated normals over every pixel and channel: the default
