@@ -357,9 +357,13 @@ def pose_power(residuals: np.ndarray, directions: np.ndarray, max_lag: int = 12)
     g = g.reshape((-1,) + g.shape[2:])
     height, width = g.shape[1:3]
     size = (height + max_lag + 1, width + max_lag + 1)
-    spectra = _padded_spectra(g, size)
-    # the directions' own cross-correlation over lags, channels apart: A[dy, dx, c, c'] = sum_p g_c(p) g_c'(p + d)
-    auto = np.fft.irfft2(np.einsum("nyxc,nyxd->yxcd", np.conj(spectra), spectra), s=size, axes=(0, 1))
+    # the directions' own cross-correlation over lags, channels apart: A[dy, dx, c, c'] = sum_p g_c(p) g_c'(p + d),
+    # accumulated over chunks of directions so that memory stays bounded at any resolution
+    cross = 0.0
+    for start in range(0, len(g), 64):
+        spectra = _padded_spectra(g[start:start + 64], size)
+        cross = cross + np.einsum("nyxc,nyxd->yxcd", np.conj(spectra), spectra)
+    auto = np.fft.irfft2(cross, s=size, axes=(0, 1))
     lags = np.r_[-max_lag:max_lag + 1]
     auto = auto[np.ix_(lags % size[0], lags % size[1])]
     quadratic = float(np.sum(auto * covariance))
