@@ -18,9 +18,8 @@ import json
 import numpy as np
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
-from mitsuba_p3.fit.model import FittedModel
+from mitsuba_p3.fit.model import FittedModel, shot_params
 from mitsuba_p3.fit.noise import SCORING_WINDOW
-from mitsuba_p3.fit.scene_opt import geometry_of, material_key
 from mitsuba_p3.infer.likelihood import score
 from mitsuba_p3.infer.model import PosteriorCore
 from mitsuba_p3.infer.posterior import default_likelihood
@@ -49,8 +48,7 @@ def main() -> None:
             window = core.window_for(image, SCORING_WINDOW) or (0, 0, *dataset.resolution)
             top, left, height, width = window
             observation = core.observe(image, window if (height, width) != dataset.resolution else None)
-            truth = {**geometry_of(shot), **{k: np.asarray(v, np.float32) for k, v in
-                                             materials[material_key(shot)].items()}}
+            truth = shot_params(shot, materials)
             renders = []
             for shift in (0.0,) + SHIFTS_MM:
                 moved = dict(truth, shift=truth["shift"] + np.array([shift / 1000, 0], np.float32))

@@ -117,6 +117,7 @@ def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str,
     seconds = time.perf_counter() - start
     estimate = posterior.estimate()
     summary = posterior.summary()
+    gap = posterior.statistic("island_gap")     # SMC only: None for MH or a single run
     draws = len(posterior.draws("kappa"))
     keep = np.linspace(0, draws - 1, min(config.keep_draws, draws)).astype(int)
     samples = {f"sample_{name}": posterior.draws(name).reshape(draws, -1)[keep].astype(np.float32)
@@ -126,8 +127,7 @@ def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str,
                   shift=np.asarray(estimate["shift"], np.float64), yaw=np.float64(estimate["theta"]),
                   kappa=np.int64(estimate["kappa"]), seconds=np.float64(seconds),
                   max_r_hat=np.float64(summary["r_hat"].max()), min_ess=np.float64(summary["ess_bulk"].min()),
-                  island_gap=np.float64(np.nan if posterior.statistic("island_gap") is None
-                                        else posterior.statistic("island_gap")),
+                  island_gap=np.float64(np.nan if gap is None else gap),
                   render_threads=np.int64(_render_threads()), **_evidence(posterior),
                   **(_particle_arrays(posterior.particles) if likelihood == "p3" else {}))
     return out

@@ -187,10 +187,14 @@ def render_train_split(model: FittedModel, dataset: Dataset, shadows: bool | Non
     materials = model.materials
     shots = dataset.split("train")
     observations = np.stack([dataset.image(s) for s in shots])
-    renders = np.stack([renderer.render({**geometry_of(s), **{k: np.asarray(v, np.float32) for k, v in
-                                                             materials[material_key(s)].items()}})
-                        for s in shots])
+    renders = np.stack([renderer.render(shot_params(s, materials)) for s in shots])
     return observations, renders
+
+
+def shot_params(shot, materials: dict) -> dict[str, np.ndarray]:
+    """The contract's object parameters of a labelled shot: its true geometry and the fitted material
+    of its colour+material pair (``materials``: :attr:`FittedModel.materials`)."""
+    return {**geometry_of(shot), **{k: np.asarray(v, np.float32) for k, v in materials[material_key(shot)].items()}}
 
 
 # the finite-difference steps of the pose directions: 1 mm of position, 2% of size
@@ -208,7 +212,7 @@ def pose_directions(model: FittedModel, dataset: Dataset, shadows: bool = True) 
     materials = model.materials
     out = []
     for shot in dataset.split("train"):
-        base = {**geometry_of(shot), **{k: np.asarray(v, np.float32) for k, v in materials[material_key(shot)].items()}}
+        base = shot_params(shot, materials)
         rows = []
         for name, step in POSE_STEPS.items():
             pair = []
