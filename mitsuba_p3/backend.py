@@ -1,5 +1,10 @@
 """The one place that chooses the Mitsuba variant and finds a working libLLVM.
 
+The variant follows the device: ``cuda_ad_rgb`` when Dr.Jit finds a CUDA device,
+``llvm_ad_rgb`` otherwise. ``MITSUBA_P3_VARIANT`` (or the CLI's ``--variant``,
+which sets it) forces either; forcing CUDA where there is none is refused with
+the reason. No other module names a variant: renderers ask :func:`jit_backend`.
+
 Dr.Jit's LLVM backend loads ``libLLVM`` at run time. Debian 12's LLVM 15 makes
 it abort ("Cannot select ... fmaximum") and LLVM 14 is not found, so we pick the
 newest usable library ourselves, export it as ``DRJIT_LIBLLVM_PATH`` *before*
@@ -15,7 +20,8 @@ from pathlib import Path
 
 from .errors import BackendError
 
-VARIANT = "llvm_ad_rgb"
+VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
+VARIANT_ENV = "MITSUBA_P3_VARIANT"
 MIN_LLVM_VERSION = 16  # 15 aborts inside Dr.Jit 1.5; 14 is not loadable.
 INSTALL_HINT = ("install Debian's libllvm19 (`apt-get install -y libllvm19`, or run "
                 "`bash scripts/setup.sh`), or point DRJIT_LIBLLVM_PATH at libLLVM >= "
@@ -69,28 +75,66 @@ def find_llvm() -> tuple[str, int]:
 
 
 _MI = None
+_CHOICE: dict = {}
+
+
+def choose_variant() -> tuple[str, str]:
+    """``(variant, why)``: the forced variant, else CUDA when Dr.Jit sees a CUDA device, else LLVM.
+
+    Imports Dr.Jit (after libLLVM is exported) but sets no variant."""
+    forced = os.environ.get(VARIANT_ENV, "").strip()
+    if forced and forced not in VARIANTS:
+        raise BackendError(f"{VARIANT_ENV}={forced!r} is not a variant this project runs; "
+                           f"choose one of {', '.join(VARIANTS)}")
+    import drjit as dr
+
+    has_cuda = dr.has_backend(dr.JitBackend.CUDA)
+    if forced == "cuda_ad_rgb" and not has_cuda:
+        raise BackendError(f"{VARIANT_ENV}=cuda_ad_rgb, but Dr.Jit finds no CUDA device (no driver "
+                           "libcuda.so or no GPU); unset it to run on the CPU")
+    if forced:
+        return forced, f"forced by {VARIANT_ENV}"
+    if has_cuda:
+        return "cuda_ad_rgb", "Dr.Jit found a CUDA device"
+    return "llvm_ad_rgb", "no CUDA device found; the CPU through LLVM"
 
 
 def mitsuba():
-    """Import Mitsuba in the ``llvm_ad_rgb`` variant (once) with a checked libLLVM and return
-    the ``mitsuba`` module. The project's plugins register themselves when
+    """Import Mitsuba in the variant :func:`choose_variant` picks (once) with a checked libLLVM
+    and return the ``mitsuba`` module. The project's plugins register themselves when
     :mod:`mitsuba_p3.render.phong` is imported."""
     global _MI
     if _MI is not None:
         return _MI
-    path, _ = find_llvm()
-    # Read by Dr.Jit when its LLVM backend initialises, i.e. at the first LLVM array.
-    os.environ["DRJIT_LIBLLVM_PATH"] = path
+    try:
+        path, _ = find_llvm()
+    except BackendError:
+        if os.environ.get(VARIANT_ENV, "").strip() != "cuda_ad_rgb":
+            raise
+        path = None  # the CUDA variant needs no libLLVM
+    if path:
+        # Read by Dr.Jit when its LLVM backend initialises, i.e. at the first LLVM array.
+        os.environ["DRJIT_LIBLLVM_PATH"] = path
     try:
         import drjit as dr
         import mitsuba as mi
     except ImportError as exc:  # pragma: no cover - depends on the install
         raise BackendError(f"cannot import Mitsuba/Dr.Jit ({exc}); run `bash scripts/setup.sh`") from exc
-    if not dr.has_backend(dr.JitBackend.LLVM):
+    variant, why = choose_variant()
+    if variant == "llvm_ad_rgb" and not dr.has_backend(dr.JitBackend.LLVM):
         raise BackendError(f"Dr.Jit could not initialise its LLVM backend with {path}; {INSTALL_HINT}")
-    mi.set_variant(VARIANT)
+    mi.set_variant(variant)
+    _CHOICE.update(variant=variant, why=why)
     _MI = mi
     return mi
+
+
+def jit_backend():
+    """The Dr.Jit backend of the chosen variant (``dr.JitBackend.CUDA`` or ``.LLVM``)."""
+    import drjit as dr
+
+    mi = mitsuba()
+    return dr.JitBackend.CUDA if mi.variant().startswith("cuda") else dr.JitBackend.LLVM
 
 
 def describe() -> dict:
@@ -98,11 +142,45 @@ def describe() -> dict:
     mi = mitsuba()
     import drjit as dr
 
-    return {
+    import platform
+
+    out = {
         "variant": mi.variant(),
+        "variant_why": _CHOICE.get("why"),
         "mitsuba": mi.MI_VERSION,
         "drjit": dr.__version__,
         "libllvm": os.environ.get("DRJIT_LIBLLVM_PATH"),
         "llvm_version": ".".join(map(str, dr.detail.llvm_version())),
         "threads": dr.thread_count(),
+        "cpu_cores": os.cpu_count(),
+        "cpu": platform.processor() or platform.machine(),
     }
+    out.update(gpu())
+    return out
+
+
+def gpu() -> dict:
+    """The GPU this process can use, as ``nvidia-smi`` names it (empty without one), and
+    where JAX runs: a benchmark says where it ran."""
+    import shutil
+    import subprocess
+
+    out: dict = {}
+    try:
+        import jax
+
+        out["jax_backend"] = jax.default_backend()
+        out["jax_devices"] = [str(d) for d in jax.devices()]
+    except Exception as exc:  # pragma: no cover - depends on the install
+        out["jax_backend"] = f"unavailable ({exc})"
+    if shutil.which("nvidia-smi"):
+        try:
+            line = subprocess.run(["nvidia-smi", "--query-gpu=name,driver_version,memory.total",
+                                   "--format=csv,noheader"], capture_output=True, text=True,
+                                  timeout=20).stdout.strip().splitlines()
+            if line:
+                name, driver, memory = (v.strip() for v in line[0].split(","))
+                out.update(gpu=name, gpu_driver=driver, gpu_memory=memory)
+        except (OSError, subprocess.SubprocessError, ValueError):
+            pass
+    return out

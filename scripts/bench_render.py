@@ -5,8 +5,14 @@ Figures (median over repeats, milliseconds): one render and a batch of 20 at
 renderer (kernel compilation; Dr.Jit may serve it from its on-disk kernel
 cache, which the report says), and forward+backward (render + VJP) at 120x160.
 Every timed render changes the object's pose and material, as MCMC does.
+``--wide 256,4096`` adds the JAX tracer's wide batches at 120x160 with both
+batchings (``map``: one image after another, the CPU's default; ``vmap``: one
+launch, the GPU's default), each with the images copied to the host (``render``)
+and kept on the device (``render_jax`` under jit). The report starts with where
+it ran (variant, CPU cores, GPU, JAX's backend); without Mitsuba installed (a GPU
+machine with JAX only) ``--renderers jax`` still runs.
 
-    python scripts/bench_render.py [--repeats 50] [--renderers mitsuba,jax]
+    python scripts/bench_render.py [--repeats 50] [--renderers mitsuba,jax] [--wide 256,4096]
 """
 from __future__ import annotations
 
@@ -44,25 +50,29 @@ def _median_ms(fn, repeats: int) -> float:
 
 
 def bench(kind: str, scene, repeats: int) -> dict:
-    import drjit as dr
-
     from mitsuba_p3.render import make_renderer
+
+    if kind == "mitsuba":
+        import drjit as dr
+    else:
+        dr = None
 
     rng = np.random.default_rng(0)
     out: dict = {}
     for height, width in ((120, 160), (480, 640)):
         tag = f"{height}x{width}"
-        dr.set_flag(dr.JitFlag.KernelHistory, True)
-        dr.kernel_history_clear()
+        if dr is not None:
+            dr.set_flag(dr.JitFlag.KernelHistory, True)
+            dr.kernel_history_clear()
         start = time.perf_counter()
         renderer = make_renderer(scene, kind, height=height, width=width)
         renderer.render(_object_params(rng))
         first = 1e3 * (time.perf_counter() - start)
-        history = dr.kernel_history()
-        dr.set_flag(dr.JitFlag.KernelHistory, False)
-        jit = [k for k in history if str(k["type"]).endswith("JIT")]
         out[f"first_call_ms_{tag}"] = round(first, 2)
-        if kind == "mitsuba":  # Dr.Jit's kernel cache; JAX compiles in the first call
+        if dr is not None:  # Dr.Jit's kernel cache; JAX compiles in the first call
+            history = dr.kernel_history()
+            dr.set_flag(dr.JitFlag.KernelHistory, False)
+            jit = [k for k in history if str(k["type"]).endswith("JIT")]
             out[f"first_call_kernels_compiled_{tag}"] = sum(
                 1 for k in jit if not k["cache_hit"] and not k.get("cache_disk"))
             out[f"first_call_kernels_from_disk_cache_{tag}"] = sum(1 for k in jit if k.get("cache_disk"))
@@ -90,18 +100,68 @@ def bench(kind: str, scene, repeats: int) -> dict:
     return out
 
 
+def bench_wide(scene, batches: list[int], repeats: int) -> dict:
+    """The JAX tracer's wide batches at 120x160, both batchings, host copies and not (images/s)."""
+    import os
+
+    import jax
+    import jax.numpy as jnp
+
+    from mitsuba_p3.render.jax_tracer import BATCHING_ENV, JaxRenderer
+
+    rng = np.random.default_rng(1)
+    out: dict = {}
+    forced = os.environ.get(BATCHING_ENV)
+    try:
+        for mode in ("map", "vmap"):
+            os.environ[BATCHING_ENV] = mode
+            renderer = JaxRenderer(scene, height=120, width=160)
+            on_device = jax.jit(renderer.render_jax)
+            for batch in batches:
+                params = [_object_params(rng, batch) for _ in range(2)]
+                device = [{k: jnp.asarray(v) for k, v in renderer.merged(p).items()} for p in params]
+                renderer.render(params[0])
+                on_device(device[0]).block_until_ready()
+                count = max(3, repeats // 10)
+                host = _median_ms(lambda: renderer.render(params[1]), count)
+                kept = _median_ms(lambda: on_device(device[1]).block_until_ready(), count)
+                out[f"{mode}_batch{batch}_images_per_s_host_copy"] = round(1e3 * batch / host, 1)
+                out[f"{mode}_batch{batch}_images_per_s_on_device"] = round(1e3 * batch / kept, 1)
+    finally:
+        if forced is None:
+            os.environ.pop(BATCHING_ENV, None)
+        else:
+            os.environ[BATCHING_ENV] = forced
+    from mitsuba_p3.render.jax_tracer import batching_for
+
+    out["default_batching_here"] = batching_for()
+    return out
+
+
+def where() -> dict:
+    """Where this ran: the Mitsuba variant (when Mitsuba is installed), CPU cores, GPU, JAX's backend."""
+    from mitsuba_p3 import backend
+
+    try:
+        return backend.describe()
+    except Exception as exc:  # a GPU machine with JAX but no Mitsuba wheel
+        import os
+
+        return {"mitsuba": f"unavailable ({exc})", "cpu_cores": os.cpu_count(), **backend.gpu()}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=50)
     parser.add_argument("--renderers", default="mitsuba,jax", help="comma-separated renderer names")
     parser.add_argument("--scene", default=str(ROOT / "scenes" / "fsclvr.xml"))
+    parser.add_argument("--wide", default="", help="comma-separated wide batch sizes for the JAX tracer")
     args = parser.parse_args()
 
-    from mitsuba_p3.backend import describe
     from mitsuba_p3.scene import load_scene
 
     scene = load_scene(args.scene)
-    report = {"machine": describe(), "scene": str(Path(args.scene).relative_to(ROOT)), "batch": BATCH,
+    report = {"machine": where(), "scene": str(Path(args.scene).relative_to(ROOT)), "batch": BATCH,
               "repeats": args.repeats,
               "targets": {"mitsuba": {"single_ms_120x160": 1.5, "single_ms_480x640": 12.0,
                                       "forward_backward_ms_120x160": 6.0, "batch_images_per_s_120x160": 1000},
@@ -110,6 +170,8 @@ def main() -> None:
                                                       "forward_backward_120x160": 10.6}}
     for kind in args.renderers.split(","):
         report[kind] = bench(kind, scene, args.repeats)
+    if args.wide:
+        report["jax_wide_120x160"] = bench_wide(scene, [int(b) for b in args.wide.split(",")], args.repeats)
     print(json.dumps(report, indent=2))
 
 

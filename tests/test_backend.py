@@ -52,3 +52,58 @@ def test_cli_reports_a_broken_llvm_in_one_line(tmp_path):
     assert done.returncode == 2
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error:") and "libllvm19" in lines[0]
+
+
+def _has_cuda() -> bool:
+    import drjit as dr
+
+    backend.mitsuba()
+    return dr.has_backend(dr.JitBackend.CUDA)
+
+
+def test_variant_follows_the_device(monkeypatch):
+    monkeypatch.delenv(backend.VARIANT_ENV, raising=False)
+    variant, why = backend.choose_variant()
+    assert variant == ("cuda_ad_rgb" if _has_cuda() else "llvm_ad_rgb") and why
+    assert backend.mitsuba().variant() in backend.VARIANTS
+
+
+def test_a_forced_variant_is_checked(monkeypatch):
+    monkeypatch.setenv(backend.VARIANT_ENV, "scalar_rgb")
+    with pytest.raises(BackendError, match="llvm_ad_rgb, cuda_ad_rgb"):
+        backend.choose_variant()
+    monkeypatch.setenv(backend.VARIANT_ENV, "llvm_ad_rgb")
+    assert backend.choose_variant() == ("llvm_ad_rgb", f"forced by {backend.VARIANT_ENV}")
+    if not _has_cuda():
+        monkeypatch.setenv(backend.VARIANT_ENV, "cuda_ad_rgb")
+        with pytest.raises(BackendError, match="no CUDA device"):
+            backend.choose_variant()
+
+
+def test_cli_variant_option_and_doctor(tmp_path):
+    """`--variant` reaches the backend before Mitsuba loads; doctor says which variant and why."""
+    env = {k: v for k, v in os.environ.items() if k != backend.VARIANT_ENV}
+    done = subprocess.run([sys.executable, "-m", "mitsuba_p3.cli", "--variant", "llvm_ad_rgb", "doctor"], env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    import json
+
+    report = json.loads(done.stdout)
+    assert report["variant"] == "llvm_ad_rgb" and "forced" in report["variant_why"]
+    assert report["cpu_cores"] >= 1 and "jax_backend" in report
+    bad = subprocess.run([sys.executable, "-m", "mitsuba_p3.cli", "--variant", "scalar_rgb", "doctor"], env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "--variant must be one of" in bad.stderr
+
+
+def test_jax_batching_follows_the_device(monkeypatch):
+    from mitsuba_p3.render.jax_tracer import BATCHING_ENV, batching_for
+    from mitsuba_p3.errors import SceneError
+
+    monkeypatch.delenv(BATCHING_ENV, raising=False)
+    assert batching_for("cpu") == "map" and batching_for("gpu") == "vmap"
+    monkeypatch.setenv(BATCHING_ENV, "vmap")
+    assert batching_for("cpu") == "vmap"
+    monkeypatch.setenv(BATCHING_ENV, "pmap")
+    with pytest.raises(SceneError, match="map, vmap"):
+        batching_for()

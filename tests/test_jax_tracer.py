@@ -114,6 +114,22 @@ def test_batch_equals_singles_and_vmap(pair):
     np.testing.assert_allclose(np.asarray(vmapped), batch, atol=1e-5)
 
 
+def test_both_batchings_render_the_same(pair, monkeypatch):
+    """The GPU's vmap batching and the CPU's map batching are one model (run here on the CPU)."""
+    from mitsuba_p3.render.jax_tracer import BATCHING_ENV, JaxRenderer
+
+    params = random_object_params(np.random.default_rng(5), 5)
+    images = {}
+    for mode in ("map", "vmap"):
+        monkeypatch.setenv(BATCHING_ENV, mode)
+        renderer = JaxRenderer(pair["jax"].scene, height=pair["jax"].height, width=pair["jax"].width)
+        assert renderer.batching == mode
+        images[mode] = renderer.render(params)
+        images[mode + "_bases"] = renderer.render_bases(params)
+    np.testing.assert_allclose(images["vmap"], images["map"], atol=1e-5)
+    np.testing.assert_allclose(images["vmap_bases"], images["map_bases"], atol=1e-5)
+
+
 def test_cli_crosscheck(tmp_path):
     import json
     import subprocess

@@ -13,6 +13,21 @@ baseline_app = typer.Typer(no_args_is_help=True, help="Few-shot baselines: Proto
 app.add_typer(baseline_app, name="baseline")
 
 
+@app.callback()
+def _global_options(variant: str = typer.Option(
+        None, "--variant", help="Mitsuba variant: llvm_ad_rgb (CPU) or cuda_ad_rgb (GPU); default: CUDA when "
+        "Dr.Jit finds a device, else the CPU. Same as MITSUBA_P3_VARIANT.")) -> None:
+    """Bayesian inverse graphics for few-shot concept learning (Mitsuba 3 + JAX)."""
+    import os
+
+    from ..backend import VARIANT_ENV, VARIANTS
+
+    if variant is not None:
+        if variant not in VARIANTS:
+            raise SceneError(f"--variant must be one of {', '.join(VARIANTS)}, got {variant!r}")
+        os.environ[VARIANT_ENV] = variant  # read when Mitsuba is first imported, after this
+
+
 # Options shared by the commands that take a scene and change its object.
 SHAPE = typer.Option(None, help="sphere, cube or cylinder.")
 COLOUR = typer.Option(None, "--color", "--colour", help="CLEVR colour name or 'r,g,b' in [0,1].")

@@ -10,10 +10,13 @@ through pixel centres.
 
 Specialised rather than switched: each shape class has its own traced function,
 so nothing evaluates the other shapes' intersections. A single render calls the
-jitted function of its class. A batch runs ``lax.map`` over elements with a
-``lax.switch`` on the class, which on CPU executes only the branch taken. vmap
-would turn the switch into a select of all three branches (and the paper found
-vmapped batches slower than single frames anyway).
+jitted function of its class. How a batch runs follows the device
+(:func:`batching_for`): on a CPU, ``lax.map`` over elements with a ``lax.switch``
+on the class, which executes only the branch taken, one image after another; on
+a GPU, ``vmap``, which turns the switch into a select of all three branches but
+fills the device's width (the whole batch is one launch; the paper found vmapped
+batches slower than single frames, on a CPU). ``MITSUBA_P3_JAX_BATCHING`` forces
+``map`` or ``vmap``.
 
 Everything is float32, jit-compiled and differentiable with ``jax.grad`` for
 colour, material, light and floor parameters. Geometry is under
@@ -32,9 +35,27 @@ from ..scene import Camera, Scene
 from ..shapes import SHAPES
 from .contract import OBJECT_SHAPES, Renderer, is_batched, unbatch
 
+BATCHINGS = ("map", "vmap")
+BATCHING_ENV = "MITSUBA_P3_JAX_BATCHING"
 SHADOW_OFFSET = 1e-4  # metres along the normal for shadow rays (as the Mitsuba renderer)
 _TINY = 1e-30
 _EPS = 1e-6  # canonical units: hits closer than this to a ray's origin are ignored
+
+
+def batching_for(platform: str | None = None) -> str:
+    """How a batch of renders runs: ``vmap`` on a GPU (one wide launch), ``map`` elsewhere
+    (one image at a time, each class's branch alone); ``MITSUBA_P3_JAX_BATCHING`` forces either."""
+    import os
+
+    from ..errors import SceneError
+
+    forced = os.environ.get(BATCHING_ENV, "").strip()
+    if forced:
+        if forced not in BATCHINGS:
+            raise SceneError(f"{BATCHING_ENV}={forced!r}; choose one of {', '.join(BATCHINGS)}")
+        return forced
+    platform = platform or jax.default_backend()
+    return "vmap" if platform in ("gpu", "cuda", "rocm") else "map"
 
 
 def camera_rays(camera: Camera, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
@@ -272,6 +293,7 @@ class JaxRenderer(Renderer):
     def __init__(self, scene: Scene, height: int | None = None, width: int | None = None,
                  shadows: bool | None = None):
         super().__init__(scene, height, width, shadows)
+        self.batching = batching_for()
         origin, directions = camera_rays(scene.camera, self.height, self.width)
         self._origin, self._directions = jnp.asarray(origin), jnp.asarray(directions.T)  # (3, N)
         self._single = {
@@ -293,7 +315,8 @@ class JaxRenderer(Renderer):
         shared = {k: v for k, v in p.items() if k not in objects}
         branches = [partial(lambda shape, obj: self._trace_shape(shape, {**shared, **obj}, bases=bases), shape)
                     for shape in SHAPES]
-        return jax.lax.map(lambda obj: jax.lax.switch(obj["kappa"], branches, obj), objects)
+        one = lambda obj: jax.lax.switch(obj["kappa"], branches, obj)  # noqa: E731
+        return jax.vmap(one)(objects) if self.batching == "vmap" else jax.lax.map(one, objects)
 
     def render_jax(self, p: Mapping[str, jnp.ndarray], bases: bool = False) -> jnp.ndarray:
         """Pure JAX render of a full parameter mapping (batched or not); kappa may be traced.

@@ -1,4 +1,4 @@
-"""The renderer contract on Mitsuba 3 (``llvm_ad_rgb``), batched and differentiable.
+"""The renderer contract on Mitsuba 3 (the variant :mod:`mitsuba_p3.backend` picks), batched and differentiable.
 
 Object geometry is never rebuilt. The three canonical shapes (see
 :mod:`mitsuba_p3.shapes`) sit side by side in one fixed Mitsuba scene, each in its
@@ -20,7 +20,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from ..backend import mitsuba
+from ..backend import jit_backend, mitsuba
 from ..scene import Scene
 from ..shapes import PARTS, SHAPES, part_dict
 from .contract import Renderer, check_memory, is_batched
@@ -30,6 +30,8 @@ import drjit as dr  # noqa: E402  (after the backend has chosen libLLVM)
 
 from .drjit_params import DrParams, gradients_of, to_drjit, to_drjit_pattern  # noqa: E402
 from .phong import SHADOW_OFFSET, phong_terms, pixel_centre_rays  # noqa: E402
+
+_BACKEND = jit_backend()  # renders open a fresh scope of the chosen variant's backend
 
 SLOT_SPACING = 8.0  # canonical units between the shape slots (shapes span 2 units)
 _ENTRY_BACKOFF = 1e-3  # start object-space rays slightly before the box, in canonical units
@@ -138,7 +140,7 @@ class MitsubaRenderer(Renderer):
         # Renders may run on another thread than the one that made this renderer (JAX's
         # pure_callback runs on XLA's thread): a fresh Dr.Jit scope orders their variables.
         check_memory(p.batch * self.height * self.width, self.memory_limit)
-        dr.detail.new_scope(dr.JitBackend.LLVM)
+        dr.detail.new_scope(_BACKEND)
         self._set_pattern(p)
         colour = self._shade(p)
         return mi.TensorXf(dr.ravel(colour), shape=(p.batch, self.height, self.width, 3))
@@ -160,7 +162,7 @@ class MitsubaRenderer(Renderer):
         merged = self.merged(params)
         p = self._to_drjit_cached(merged)
         check_memory(p.batch * self.height * self.width, self.memory_limit, "bases")
-        dr.detail.new_scope(dr.JitBackend.LLVM)  # see render_drjit
+        dr.detail.new_scope(_BACKEND)  # see render_drjit
         self._set_pattern(p)
         parts = self._shade(p, bases=True)
         flat = [part[channel] for part in parts for channel in range(3)]
