@@ -31,12 +31,38 @@ FOLDER_KINDS = {"labels.json": "a benchmark data set", "model.json": "a fitted m
                 "posterior.nc": "a posterior (mitsuba-p3 infer)"}
 
 
+# the folders no command writes inside unless it made them: their files are some run's input
+PROTECTED_MARKERS = {"labels.json": "a benchmark data set", "model.json": "a fitted model"}
+
+
+def refuse_inside_protected(path: str | Path, command: str) -> None:
+    """The one rule for outputs: refuse ``path`` when a folder above it (links followed) is a data set
+    or a fitted model, so that no command writes inside a folder it did not make. ``path`` itself is
+    the caller's to check (a data set may be resumed by ``benchmark generate``, a model by ``fit``)."""
+    real = Path(os.path.realpath(Path(path).expanduser()))
+    for folder in real.parents:
+        for marker, kind in PROTECTED_MARKERS.items():
+            if (folder / marker).is_file():
+                raise MitsubaP3Error(f"{path} lies inside {kind} ({folder}); {command} never writes into one: "
+                                     "give an output outside it")
+
+
+def refuse_protected_folder(path: str | Path, command: str) -> None:
+    """:func:`refuse_inside_protected`, and refuse ``path`` itself being a data set or a fitted model:
+    for commands whose output folder is neither (training runs, tables)."""
+    refuse_inside_protected(path, command)
+    for marker, kind in PROTECTED_MARKERS.items():
+        if (Path(path) / marker).is_file():
+            raise MitsubaP3Error(f"{path} is {kind}; {command} never writes into one: give another output folder")
+
+
 def claim_output_folder(path: str | Path, own: str | tuple, command: str) -> Path:
     """Create ``path`` for ``command``'s output, or accept it if it is empty or holds one of ``own``
     (the files that command writes, e.g. ``model.json``); refuse a file, another kind of folder, or a
     folder of other files, with one line naming the fix. Nothing is written on refusal."""
     owns = (own,) if isinstance(own, str) else tuple(own)
     path = Path(path)
+    refuse_inside_protected(path, command)
     if path.exists() and not path.is_dir():
         raise MitsubaP3Error(f"{path} is a file; {command} writes a folder: give a new folder name")
     if path.is_dir():
@@ -128,27 +154,40 @@ def atomic_npz(path: str | Path, compressed: bool = False, **arrays) -> Path:
 
 
 @contextmanager
-def folder_lock(path: str | Path, command: str) -> Iterator[None]:
+def folder_lock(path: str | Path, command: str, shared: bool = False) -> Iterator[None]:
     """Hold ``path/.lock`` (an advisory ``flock``) for a block: a second run into the same folder is
     refused at once instead of computing everything twice. The kernel drops the lock when its
-    process dies, so a killed run never leaves a stale lock."""
+    process dies, so a killed run never leaves a stale lock.
+
+    ``shared``: a reader's lock (``infer`` on a model folder): many readers at once, but none while a
+    writer (``fit``) holds the folder, and no writer while one reads. A folder the reader cannot
+    write is not locked: no one else can write it either."""
     import fcntl
 
     path = Path(path)
-    path.mkdir(parents=True, exist_ok=True)
-    handle = open(path / ".lock", "a+")
+    if not shared:
+        path.mkdir(parents=True, exist_ok=True)
+    try:
+        handle = open(path / ".lock", "r" if shared and not os.access(path, os.W_OK) else "a+")
+    except OSError:
+        if not shared:
+            raise
+        yield
+        return
     try:
         try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(handle, (fcntl.LOCK_SH if shared else fcntl.LOCK_EX) | fcntl.LOCK_NB)
         except BlockingIOError:
             handle.seek(0)
             owner = handle.read().strip() or "another process"
-            raise MitsubaP3Error(f"{command}: {path} is in use by another run (pid {owner}); wait for it to "
-                                 "finish or give another --out folder") from None
-        handle.seek(0)
-        handle.truncate()
-        handle.write(str(os.getpid()))
-        handle.flush()
+            doing = "being written by" if shared else "in use by"
+            raise MitsubaP3Error(f"{command}: {path} is {doing} another run (pid {owner}); wait for it to "
+                                 f"finish{'' if shared else ' or give another --out folder'}") from None
+        if not shared:
+            handle.seek(0)
+            handle.truncate()
+            handle.write(str(os.getpid()))
+            handle.flush()
         yield
     finally:
         handle.close()

@@ -86,6 +86,9 @@ def check_image_output(path: str | Path) -> Path:
             if not parent.is_dir():
                 raise ImageError(f"{path}: {parent} is a file, not a folder")
             break
+    from .files import refuse_inside_protected
+
+    refuse_inside_protected(path, "writing an image")
     return path
 
 

@@ -109,6 +109,14 @@ def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] 
     return folder, model
 
 
+def machine() -> dict:
+    """Where a timing was made: the Mitsuba variant, CPU cores, the GPU (if any) and JAX's backend."""
+    from .backend import describe
+
+    keys = ("variant", "cpu_cores", "cpu", "threads", "gpu", "gpu_driver", "jax_backend")
+    return {k: v for k, v in describe().items() if k in keys}
+
+
 def reproduce(data: str | Path, out: str | Path, config: ReproduceConfig | None = None,
               progress: Callable[[str, int, int], None] | None = None) -> dict:
     """Generate, fit and evaluate every benchmark of ``config``, then write the paper's tables in ``out``;
@@ -116,6 +124,9 @@ def reproduce(data: str | Path, out: str | Path, config: ReproduceConfig | None 
     config = config or ReproduceConfig()
     data, out = Path(data), Path(out)
     evaluation = config.evaluation
+    from .files import refuse_protected_folder
+
+    refuse_protected_folder(out, "mitsuba-p3 reproduce")
     out.mkdir(parents=True, exist_ok=True)
     timing_log = out / "timing.json"
     started = time.strftime("%Y-%m-%dT%H:%M:%S")
@@ -146,7 +157,8 @@ def reproduce(data: str | Path, out: str | Path, config: ReproduceConfig | None 
                     "sigma": evaluation.sigma, "noise": evaluation.noise, "distance": "+".join(evaluation.distance.properties),
                     "jobs": evaluation.jobs, "episodes": evaluation.episodes, "minutes": round(minutes[variant], 2),
                     "generate_and_fit_minutes": round(prepared, 2),
-                    "figure_and_tables_minutes": round(reported, 2), "sampler": asdict(evaluation.sampler)})
+                    "figure_and_tables_minutes": round(reported, 2), "sampler": asdict(evaluation.sampler),
+                    "machine": machine()})
         atomic_json(timing_log, log)
     return minutes
 

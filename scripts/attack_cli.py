@@ -242,6 +242,57 @@ def attacks() -> list[Attack]:
     add(Attack("infer: -o the model folder", infer("model"), guarded=("model",)))
     add(Attack("evaluate: -o a folder of the user's files", evaluate("mine"), setup=make_file("mine/notes.txt"),
                guarded=("mine",)))
+    first_image = lambda w: Path(test_image(w)).relative_to(w)  # noqa: E731
+    add(Attack("render: -o over a labelled image", lambda w: ["render", scene, "-o", test_image(w),
+                                                              "--resolution", "60x80"], guarded=("data",)))
+    add(Attack("benchmark show: -o inside the data set", lambda w: ["benchmark", "show", str(w / "data"), "-o",
+                                                                    str(w / "data" / "sheet.png")], guarded=("data",)))
+    add(Attack("fit: --out inside the data set", lambda w: ["fit", str(w / "data"), "--out",
+                                                            str(w / "data" / "train" / "mymodel")], guarded=("data",)))
+    add(Attack("baseline train: --out the data set", lambda w: ["baseline", "train", str(w / "data"), "--out",
+                                                                str(w / "data"), "--iterations", "1"],
+               guarded=("data",)))
+    add(Attack("reproduce: --out the data set", lambda w: ["reproduce", "--data", str(w), "--out", str(w / "data")],
+               guarded=("data",)))
+    add(Attack("infer: -o inside the model", infer("model/posterior"), guarded=("model",)))
+
+    def replaced_image(w: Path) -> None:
+        """A finished run, then its first test image replaced in place by an all-black one."""
+        from PIL import Image
+
+        first_run(w)
+        run = w / "run-replaced"
+        if not run.exists():
+            shutil.copytree(w / "data", w / "data-replaced")
+            shutil.copytree(w / "run", run)
+            record = json.loads((run / "run.json").read_text())
+            record["dataset"] = str((w / "data-replaced").resolve())
+            (run / "run.json").write_text(json.dumps(record))
+            image = w / "data-replaced" / first_image(w).relative_to("data")
+            Image.new("RGB", Image.open(image).size).save(image)
+
+    def sampled_again(w: Path) -> str | None:
+        stale = list((w / "run-replaced" / "posteriors").rglob("*.stale"))
+        return None if stale else "the replaced image was scored with its old cached posterior"
+    add(Attack("evaluate: a test image replaced in place", evaluate("run-replaced", data="data-replaced"),
+               expect="ok", setup=replaced_image, check=sampled_again))
+
+    def empty_floor(w: Path) -> None:
+        from mitsuba_p3.fit.model import FittedModel
+        from mitsuba_p3.render import make_renderer
+
+        if not (w / "floor.npy").exists():
+            renderer = make_renderer(FittedModel(w / "model").scene(), "mitsuba", height=120, width=160, shadows=True)
+            np.save(w / "floor.npy", renderer.render_empty())
+
+    def says_nothing_here(w: Path) -> str | None:
+        warnings = json.loads((w / "i-floor" / "estimate.json").read_text()).get("warnings", [])
+        return None if any("no object" in x for x in warnings) else "an empty floor answered as an object, no warning"
+    add(Attack("infer: an empty floor", lambda w: ["infer", str(w / "floor.npy"), "--model", str(w / "model"), "-o",
+                                                  str(w / "i-floor"), "--sampler", "smc", "--particles", "8"],
+               expect="ok", setup=empty_floor, check=says_nothing_here))
+    add(Attack("infer: --particles 1000000000", infer("i-particles", "--sampler", "smc", "--particles", "1000000000"),
+               tags=["fast"]))
     # -- 3. late crashes --------------------------------------------------------------------------------------
     for flag, value in (("--chains", "0"), ("--chains", "-2"), ("--steps", "0"), ("--jobs", "0"), ("--seed", "-1"),
                         ("--burn-in", "-3"), ("--episodes", "0")):

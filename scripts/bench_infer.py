@@ -129,7 +129,10 @@ def main() -> None:
         tests = [tests[i] for i in np.unique(np.linspace(0, len(tests) - 1, args.images).astype(int))]
     rules = rules_for(FittedModel(args.model), dataset)
     misfits = PosteriorMisfits(dataset, Path(args.model))
-    report = {"dataset": args.dataset, "images": len(tests), "seeds": args.seeds, "settings": {}}
+    from mitsuba_p3.reproduce import machine
+
+    report = {"dataset": args.dataset, "images": len(tests), "seeds": args.seeds, "machine": machine(),
+              "settings": {}}
     for name, seeds in chosen.items():
         runs = []
         for seed in range(seeds):

@@ -88,15 +88,19 @@ def bench(kind: str, scene, repeats: int) -> dict:
             renderer.vjp(_object_params(rng), cotangent)
             out[f"forward_backward_ms_{tag}"] = round(
                 _median_ms(lambda: renderer.vjp(_object_params(rng), cotangent), repeats), 3)
-    # hard shadows (the fitted likelihood renders with them), side by side at the inference size
+    # shadows off, hard, and soft (lights of 3 cm radius, SOFT_SHADOW_SAMPLES points each), side by
+    # side at the inference size
+    from mitsuba_p3.render.soft_shadows import SOFT_SHADOW_SAMPLES
+
     per_image = {}
-    for shadows in (False, True):
-        renderer = make_renderer(scene, kind, height=120, width=160, shadows=shadows)
+    for name, shadows, radius in (("off", False, 0.0), ("on", True, 0.0), ("soft", True, 0.03)):
+        renderer = make_renderer(scene.replace(light_radius=radius), kind, height=120, width=160, shadows=shadows)
         renderer.render(_object_params(rng, BATCH))
-        per_image[shadows] = _median_ms(lambda: renderer.render(_object_params(rng, BATCH)), repeats) / BATCH
-    out["batch20_ms_per_image_120x160_shadows_off"] = round(per_image[False], 3)
-    out["batch20_ms_per_image_120x160_shadows_on"] = round(per_image[True], 3)
-    out["shadows_cost_ratio_120x160"] = round(per_image[True] / per_image[False], 2)
+        per_image[name] = _median_ms(lambda: renderer.render(_object_params(rng, BATCH)), repeats) / BATCH
+        out[f"batch20_ms_per_image_120x160_shadows_{name}"] = round(per_image[name], 3)
+    out["shadows_cost_ratio_120x160"] = round(per_image["on"] / per_image["off"], 2)
+    out["soft_shadows_samples"] = SOFT_SHADOW_SAMPLES
+    out["soft_shadows_cost_ratio_vs_hard_120x160"] = round(per_image["soft"] / per_image["on"], 2)
     return out
 
 

@@ -91,8 +91,8 @@ def test_evaluate_resumes_after_kill_and_writes_tables(bench, tmp_path):
     bad = subprocess.run(command + ["--distance", "colour+hue"], capture_output=True, text=True, timeout=300)
     assert bad.returncode != 0 and "hue" in bad.stderr
 
-    other = subprocess.run(command[:-len(SAMPLER_FLAGS)] + ["--chains", "6"], capture_output=True, text=True,
-                           timeout=300)
+    # a setting of the sampler this run used (SMC under the default fitted noise: chains would not count)
+    other = subprocess.run(command + ["--particles", "12"], capture_output=True, text=True, timeout=300)
     assert other.returncode == 2 and "other settings" in other.stderr
 
 
@@ -396,3 +396,38 @@ def test_reproduce_logs_its_time_and_resumes_without_sampling_again(bench, tmp_p
     reproduce(data, tmp_path / "out", config)
     assert {p: p.stat().st_mtime_ns for p in posteriors} == posteriors
     assert len(json.loads((tmp_path / "out" / "timing.json").read_text())) == 2
+
+
+def test_a_posterior_of_a_replaced_image_is_set_aside(tmp_path):
+    """A cache answers for the image bytes it was sampled from: a replaced image's posterior is
+    moved aside (NAME.stale) and sampled again; a cache from before digests is trusted."""
+    from mitsuba_p3.evaluate.jobs import _cached
+
+    path = tmp_path / "7.npz"
+    np.savez(path, sample_class=np.zeros(3, np.int8), seconds=np.float64(1.0), image_digest=np.array("aaa"))
+    assert _cached(path, "aaa") and path.exists()
+    assert not _cached(path, "bbb") and not path.exists() and path.with_suffix(".stale").exists()
+    np.savez(path, sample_class=np.zeros(3, np.int8), seconds=np.float64(1.0))
+    assert _cached(path, "bbb")
+
+
+@pytest.mark.slow
+def test_evaluate_samples_again_for_an_image_replaced_in_place(bench, tmp_path):
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(bench / "data", data)
+    dataset = load_dataset(data)
+    shot = dataset.split("test")[0]
+    config = EvaluationConfig(likelihoods=("p3",), sampler=TINY)
+    compute_posteriors(dataset, bench / "model", tmp_path / "run", config, shots=[shot.index])
+    path = posterior_path(tmp_path / "run", "p3", shot.index)
+    with np.load(path) as f:
+        first = str(f["image_digest"])
+    from PIL import Image
+
+    Image.new("RGB", Image.open(shot.file).size).save(shot.file)      # an all-black image in its place
+    compute_posteriors(load_dataset(data), bench / "model", tmp_path / "run", config, shots=[shot.index])
+    assert path.with_suffix(".stale").exists()
+    with np.load(path) as f:
+        assert str(f["image_digest"]) != first

@@ -91,3 +91,91 @@ def test_image_outputs_are_written_as_named_or_refused(tmp_path, name, refused):
     write_image(target, image)
     with Image.open(target) as written:
         assert written.format == {"out.jpg": "JPEG", "out.png": "PNG"}[name] and written.size == (6, 4)
+
+
+@pytest.fixture
+def protected(tmp_path):
+    """A data set (labels.json) and a fitted model (model.json) side by side."""
+    (tmp_path / "data" / "train" / "red").mkdir(parents=True)
+    (tmp_path / "data" / "labels.json").write_text("{}")
+    (tmp_path / "data" / "train" / "red" / "0.png").write_bytes(b"labelled")
+    (tmp_path / "model").mkdir()
+    (tmp_path / "model" / "model.json").write_text("{}")
+    return tmp_path
+
+
+@pytest.mark.parametrize("target", ["data/train/red/0.png", "data/train/red/new.png", "data/sheet.png",
+                                    "model/figure.png"])
+def test_no_image_is_written_inside_a_data_set_or_model(protected, target):
+    from mitsuba_p3.errors import MitsubaP3Error
+    from mitsuba_p3.images import check_image_output
+
+    with pytest.raises(MitsubaP3Error, match="lies inside a (benchmark data set|fitted model)"):
+        check_image_output(protected / target)
+    assert (protected / "data" / "train" / "red" / "0.png").read_bytes() == b"labelled"
+    check_image_output(protected / "elsewhere" / "sheet.png")          # outside both: fine
+
+
+def test_no_output_folder_inside_a_data_set_or_model_even_through_a_link(protected):
+    from mitsuba_p3.errors import MitsubaP3Error
+    from mitsuba_p3.files import claim_output_folder, refuse_protected_folder
+
+    (protected / "link").symlink_to(protected / "data")
+    for inside in ("data/train/mymodel", "model/run", "link/run"):
+        with pytest.raises(MitsubaP3Error, match="lies inside"):
+            claim_output_folder(protected / inside, "model.json", "mitsuba-p3 fit")
+        assert not (protected / inside).exists() or inside.startswith("link")
+    with pytest.raises(MitsubaP3Error, match="is a benchmark data set"):
+        refuse_protected_folder(protected / "data", "mitsuba-p3 reproduce")
+    with pytest.raises(MitsubaP3Error, match="lies inside a fitted model"):
+        refuse_protected_folder(protected / "model" / "tables", "mitsuba-p3 reproduce")
+    refuse_protected_folder(protected / "results", "mitsuba-p3 reproduce")
+
+
+def test_commands_refuse_to_write_into_a_data_set(protected):
+    from mitsuba_p3.baselines.train import TrainConfig, meta_train
+    from mitsuba_p3.benchmarks.generate import generate
+    from mitsuba_p3.errors import MitsubaP3Error
+    from mitsuba_p3.reproduce import reproduce
+
+    with pytest.raises(MitsubaP3Error, match="lies inside a benchmark data set"):
+        meta_train({}, protected / "data" / "baseline", TrainConfig())
+    with pytest.raises(MitsubaP3Error, match="is a benchmark data set"):
+        reproduce(protected, protected / "data")
+    with pytest.raises(MitsubaP3Error, match="lies inside a fitted model"):
+        generate("fsclvr", protected / "model" / "bench", size="small")
+    with pytest.raises(MitsubaP3Error, match="is a fitted model"):
+        generate("fsclvr", protected / "model", size="small")
+    assert sorted(p.name for p in (protected / "model").iterdir()) == ["model.json"]
+
+
+def test_a_readers_lock_waits_for_no_writer(tmp_path):
+    """infer holds a model folder shared while fit holds it exclusively: each refuses the other;
+    readers share."""
+    import subprocess
+    import sys
+
+    from mitsuba_p3.errors import MitsubaP3Error
+    from mitsuba_p3.files import folder_lock
+
+    def holder(shared):
+        process = subprocess.Popen([sys.executable, "-c", "import time; from mitsuba_p3.files import folder_lock\n"
+                                    f"with folder_lock({str(tmp_path)!r}, 'test', shared={shared}):\n"
+                                    "    print('held', flush=True); time.sleep(60)"], stdout=subprocess.PIPE, text=True)
+        assert process.stdout.readline().strip() == "held"
+        return process
+
+    writer = holder(False)
+    with pytest.raises(MitsubaP3Error, match="being written by another run"):
+        with folder_lock(tmp_path, "mitsuba-p3 infer", shared=True):
+            pass
+    writer.kill()
+    writer.wait()
+    reader = holder(True)
+    with folder_lock(tmp_path, "mitsuba-p3 infer", shared=True):   # readers share
+        pass
+    with pytest.raises(MitsubaP3Error, match="in use by another run"):
+        with folder_lock(tmp_path, "mitsuba-p3 fit"):
+            pass
+    reader.kill()
+    reader.wait()

@@ -26,6 +26,7 @@ def setup():
                                              "scale": "0.06, 0.05, 0.05"})
     scene.floor.material.specular = 0.3
     scene.floor.material.shininess = 6.0
+    scene.sky, scene.ground = np.array([0.12, 0.14, 0.16]), np.array([0.08, 0.07, 0.06])   # the hemisphere term on
     renderer = make_renderer(scene, height=H, width=W)
     rng = np.random.default_rng(0)
     cotangent = rng.normal(size=(H, W, 3)).astype(np.float32)

@@ -447,6 +447,9 @@ def test_island_gap_and_convergence_report_each_samplers_own_diagnostic():
     assert "max_r_hat_median" not in figures and figures["island_gap_median"] == pytest.approx(0.6)
     assert figures["island_gap_over_10"] == pytest.approx(1 / 3)
     assert convergence(mh) == {"max_r_hat_median": pytest.approx(1.155)}
+    for c, factor in zip(smc, (35.0, -2.0, 80.0)):
+        c.log_bayes_factor_object = factor
+    assert convergence(smc)["unexplained_share"] == pytest.approx(1 / 3)
 
 
 def test_systematic_resampling_follows_the_weights():
@@ -681,3 +684,32 @@ def test_infer_names_the_material_by_a_rule_saved_by_evaluate(fitted, observed, 
     (tmp_path / "bad.json").write_text(json.dumps({"spread": 1}))
     with pytest.raises(ConfigError, match="not a material rule"):
         read_material_rule(fitted, tmp_path / "bad.json")
+
+
+def test_sampler_settings_beyond_memory_are_refused_before_rendering():
+    from mitsuba_p3.errors import InferenceError
+    from mitsuba_p3.infer.smc import SMCConfig, check_sampler_memory
+
+    check_sampler_memory(SMCConfig(), 3, 56 * 72, limit=4 * 2 ** 30)          # the default fits in 4 GB
+    with pytest.raises(InferenceError, match=r"1,000,000,000 particles: .* use --particles \d+ or fewer"):
+        check_sampler_memory(SMCConfig(particles=1_000_000_000), 3, 56 * 72, limit=4 * 2 ** 30)
+
+
+def test_an_empty_floor_is_answered_as_nothing_and_an_object_as_one(fitted):
+    """The SMC's object evidence (:func:`mitsuba_p3.infer.smc.object_evidence`): on the fitted world's
+    empty floor, "one object" loses to the floor itself (log Bayes factor < 0) and the report warns; on
+    an image of an object, one object wins and nothing is flagged."""
+    from mitsuba_p3.infer.report import range_warnings
+    from mitsuba_p3.infer.smc import SMCConfig
+    from mitsuba_p3.render import make_renderer
+
+    likelihood = LikelihoodConfig("p3", sigma=0.03, power=0.05, shadows=True)
+    config = SMCConfig(particles=8, mcmc_steps=1, final_steps=1, draws=40, islands=1)
+    renderer = make_renderer(fitted.scene(), "mitsuba", height=120, width=160, shadows=True)
+    factors = {}
+    for name, image in (("empty", renderer.render_empty()), ("object", renderer.render(TRUTH))):
+        posterior = infer_image(fitted, image, likelihood, config)
+        factors[name] = posterior.statistic("log_bayes_factor_object")
+        warnings = range_warnings(posterior, fitted, {"log_bayes_factor_object": factors[name]})
+        assert any("no object" in w for w in warnings) == (name == "empty"), (name, warnings)
+    assert factors["empty"] < 0 < factors["object"], factors

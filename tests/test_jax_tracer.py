@@ -61,6 +61,44 @@ def test_agrees_with_mitsuba(shape, pose, lights, shadows, seed):
     assert figures["fraction_over_2_255"] <= 0.005, figures
 
 
+@pytest.mark.parametrize("shape", ["sphere", "cube", "cylinder"])
+def test_soft_shadows_agree_with_mitsuba(shape):
+    """Lights widened into discs: both renderers trace the same fixed sample points (>= 40 dB)."""
+    rng = np.random.default_rng(7)
+    scene = load_scene(SCENES / "room.xml", {"shape": shape}).replace(shadows=True, light_radius=0.03)
+    params = {k: v[0] for k, v in random_object_params(rng, 1).items()}
+    params["kappa"] = np.int32(["sphere", "cube", "cylinder"].index(shape))
+    images, ids = [], []
+    for kind in ("mitsuba", "jax"):
+        renderer = make_renderer(scene, kind, height=120, width=160)
+        assert renderer.shadow_samples > 1
+        images.append(renderer.render(params))
+        ids.append(renderer.surface_ids(params))
+    hard = make_renderer(scene.replace(light_radius=0.0), "jax", height=120, width=160).render(params)
+    assert np.abs(images[1] - hard).max() > 0.01, "the penumbra must differ from the hard shadow"
+    figures = agreement(images[0], images[1], ids[0], ids[1])
+    assert figures["psnr_interior_db"] >= 40, figures
+    assert figures["fraction_over_2_255"] <= 0.005, figures
+
+
+@pytest.mark.parametrize("shape", ["sphere", "cube", "cylinder"])
+def test_the_hemisphere_term_agrees_with_mitsuba(shape):
+    """A sky and ground (render/hemisphere.py): one formula in both renderers (>= 40 dB), on a shiny object."""
+    rng = np.random.default_rng(8)
+    scene = load_scene(SCENES / "room.xml", {"shape": shape}).replace(
+        shadows=True, sky=np.array([0.3, 0.35, 0.4]), ground=np.array([0.2, 0.15, 0.1]))
+    params = {k: v[0] for k, v in random_object_params(rng, 1).items()}
+    params.update(kappa=np.int32(["sphere", "cube", "cylinder"].index(shape)), specular=np.float32(0.7))
+    images, ids = [], []
+    for kind in ("mitsuba", "jax"):
+        renderer = make_renderer(scene, kind, height=120, width=160)
+        images.append(renderer.render(params))
+        ids.append(renderer.surface_ids(params))
+    figures = agreement(images[0], images[1], ids[0], ids[1])
+    assert figures["psnr_interior_db"] >= 40, figures
+    assert figures["fraction_over_2_255"] <= 0.005, figures
+
+
 def test_interior_mask_excludes_silhouettes():
     ids = np.zeros((7, 7), int)
     ids[2:5, 2:5] = 2
@@ -77,7 +115,8 @@ def pair():
     return {kind: make_renderer(scene, kind, height=H, width=W) for kind in ("mitsuba", "jax")}
 
 
-@pytest.mark.parametrize("key", ["colour", "light_intensity", "diffuse", "light_position", "floor_pattern"])
+@pytest.mark.parametrize("key", ["colour", "light_intensity", "diffuse", "light_position", "floor_pattern", "sky",
+                                 "ground"])
 def test_gradients_agree_with_mitsuba(pair, key):
     cotangent = np.random.default_rng(5).normal(size=(H, W, 3)).astype(np.float32)
     g_mi = pair["mitsuba"].vjp(None, cotangent)[key]

@@ -94,6 +94,55 @@ def test_shadows_only_darken(scene):
     assert (lit - shadowed).max() > 0.05  # a visible cast shadow exists
 
 
+def test_soft_shadows_lie_between_lit_and_hard(scene):
+    """A light with a radius casts a penumbra: never darker than the hard shadow's umbra nor
+    brighter than no shadow, with pixels strictly between; radius 0 is the hard shadow exactly."""
+    lit = make_renderer(scene, height=H, width=W, shadows=False).render()
+    hard = make_renderer(scene, height=H, width=W, shadows=True).render()
+    soft_scene = scene.replace(light_radius=0.04)
+    soft = make_renderer(soft_scene, height=H, width=W, shadows=True)
+    assert soft.shadow_samples > 1
+    image = soft.render()
+    assert np.all(image <= lit + 1e-6) and np.all(image >= hard.min() - 1e-6)
+    between = (image > hard + 0.01) & (image < lit - 0.01)
+    assert between.any(axis=2).sum() > 20
+    assert np.array_equal(soft.render({"light_radius": np.float32(0.0)}), hard)
+    assert np.array_equal(soft.render(), image)  # a fixed pattern: deterministic
+    wider = soft.render({"light_radius": np.float32(0.08)})
+    assert np.abs(wider - image).max() > 0.01
+
+
+def test_soft_shadows_match_mitsubas_own_integrator(mi, tmp_path):
+    """The plugin (phong_integrator with light_radius, through Embree on the XML) and the renderer agree."""
+    from mitsuba_p3.scene import save_scene
+
+    scene = load_scene(SCENES / "room.xml", {"shape": "cube", "theta_deg": "20"}).replace(shadows=True,
+                                                                                         light_radius=0.03)
+    save_scene(scene, tmp_path / "soft.xml")
+    assert load_scene(tmp_path / "soft.xml").light_radius == pytest.approx(0.03)
+    fast = make_renderer(scene, height=120, width=160).render()
+    mi_scene = mi.load_file(str(tmp_path / "soft.xml"))
+    params = mi.traverse(mi_scene.sensors()[0])
+    params["film.size"] = [160, 120]
+    params.update()
+    reference = mi.render(mi_scene).numpy()
+    diff = np.abs(fast - reference).max(axis=2)
+    assert (diff > 2 / 255).mean() <= 0.01, f"{(diff > 2 / 255).mean():.4%} of pixels differ"
+
+
+def test_disc_pattern():
+    from mitsuba_p3.render.soft_shadows import disc_pattern, samples_for
+
+    assert np.array_equal(disc_pattern(1), np.zeros((1, 2)))
+    points = disc_pattern(16)
+    radius = np.hypot(points[:, 0], points[:, 1])
+    assert points.shape == (16, 2) and radius.max() < 1 and len(np.unique(points.round(4), axis=0)) == 16
+    assert abs(points.mean(axis=0)).max() < 0.1  # spread around the centre
+    assert samples_for(0.0) == 1 and samples_for(0.02) == 16 and samples_for(0.0, 4) == 4
+    with pytest.raises(ValueError):
+        disc_pattern(0)
+
+
 def test_shapes_look_different(scene):
     renderer = make_renderer(scene, height=H, width=W)
     images = [renderer.render({"kappa": np.int32(k), "theta": np.float32(0.4)}) for k in range(3)]
@@ -149,6 +198,7 @@ def test_memory_flat_over_thousands_of_renders(scene):
     ({"kappa": np.float32(0.5)}, "whole number"),
     ({"scale": np.array([0.01, -0.01, 0.01], np.float32)}, "positive"),
     ({"light_intensity": np.ones((2, 3), np.float32)}, "light_position"),
+    ({"light_radius": np.float32(-0.01)}, "light_radius"),
     ({"colur": np.ones(3, np.float32)}, "unknown renderer parameter"),
 ])
 def test_bad_parameters_raise(scene, update, message):
@@ -169,3 +219,44 @@ def test_a_render_over_the_memory_limit_is_refused_before_allocation(scene, monk
         renderer.render({"shift": np.zeros((64, 2), np.float32)})        # a batch of 64 does not
     with pytest.raises(SceneError, match="MITSUBA_P3_MEMORY_GB"):
         make_renderer(scene, "mitsuba", height=2000, width=2000)
+
+
+def test_the_hemisphere_term_matches_mitsubas_own_integrator_and_vanishes_without_sky(mi, tmp_path):
+    """A sky and ground (render/hemisphere.py): the renderer and the phong_integrator plugin on the saved
+    XML agree; with both zero the image is the point lights' alone, bit for bit."""
+    from mitsuba_p3.scene import save_scene
+
+    base = load_scene(SCENES / "room.xml", {"shape": "sphere", "specular": "0.8"}).replace(shadows=True)
+    scene = base.replace(sky=np.array([0.3, 0.35, 0.4]), ground=np.array([0.2, 0.15, 0.1]))
+    save_scene(scene, tmp_path / "hemi.xml")
+    loaded = load_scene(tmp_path / "hemi.xml")
+    np.testing.assert_allclose(loaded.sky, scene.sky) and np.testing.assert_allclose(loaded.ground, scene.ground)
+    fast = make_renderer(scene, height=120, width=160).render()
+    plain = make_renderer(base, height=120, width=160).render()
+    assert np.abs(fast - plain).max() > 0.05
+    zero = make_renderer(scene, height=120, width=160).render({"sky": np.zeros(3, np.float32),
+                                                                 "ground": np.zeros(3, np.float32)})
+    assert np.array_equal(zero, plain)
+    mi_scene = mi.load_file(str(tmp_path / "hemi.xml"))
+    params = mi.traverse(mi_scene.sensors()[0])
+    params["film.size"] = [160, 120]
+    params.update()
+    reference = mi.render(mi_scene).numpy()
+    diff = np.abs(fast - reference).max(axis=2)
+    assert (diff > 2 / 255).mean() <= 0.005, f"{(diff > 2 / 255).mean():.4%} of pixels differ"
+
+
+def test_hemisphere_terms():
+    """H_d is the sky for an upward normal and the ground for a downward one; H_s tends to the sky (ground)
+    for a mirror direction far above (below) the horizon, scaled by the lobe's solid angle."""
+    from scipy.special import erf
+
+    from mitsuba_p3.render.hemisphere import diffuse_term, specular_term
+
+    sky, ground = 0.8, 0.2
+    assert diffuse_term(1.0, sky, ground) == pytest.approx(sky) and diffuse_term(-1.0, sky, ground) == pytest.approx(ground)
+    assert diffuse_term(0.0, sky, ground) == pytest.approx(0.5)
+    spec = lambda z, a: specular_term(z, a, sky, ground, np.arcsin, erf, np.sqrt, np.clip)  # noqa: E731
+    assert spec(1.0, 100.0) == pytest.approx(2 * np.pi / 102 * sky, rel=1e-6)
+    assert spec(-1.0, 100.0) == pytest.approx(2 * np.pi / 102 * ground, rel=1e-6)
+    assert spec(0.0, 10.0) == pytest.approx(2 * np.pi / 12 * 0.5)

@@ -348,6 +348,9 @@ def meta_train(images: dict[str, np.ndarray], out: str | Path, config: TrainConf
     images, held_out = split_validation(images, config.validation_classes, config.seed)
     tasks = validation_tasks(held_out, config.validation_episodes, config.seed)
     out = Path(out)
+    from ..files import refuse_protected_folder
+
+    refuse_protected_folder(out, "mitsuba-p3 baseline train")
     out.mkdir(parents=True, exist_ok=True)
     model = config.model()
     optimiser = optax.adam(config.learning_rate)
@@ -464,6 +467,9 @@ def evaluate_baseline(model_dir: str | Path, dataset_dir: str | Path, run_dir: s
     from ..benchmarks.episodes import sample_episodes
     from ..evaluate.metrics import feasible_settings, interval95, setting_name
 
+    from ..files import refuse_protected_folder
+
+    refuse_protected_folder(run_dir, "mitsuba-p3 baseline evaluate")
     state = Checkpoint.load(model_dir)
     config = TrainConfig(**state.config)
     model = config.model()

@@ -156,6 +156,11 @@ def generate(variant: str, out: str | Path, seed: int = 0, size: str = "full",
     check_size(size)
     height, width = resolution or DEFAULT_RESOLUTION[size]
     out = Path(out)
+    from ..files import refuse_inside_protected
+
+    refuse_inside_protected(out, "mitsuba-p3 benchmark generate")   # out itself may be this benchmark, resumed
+    if (out / "model.json").is_file():
+        raise BenchmarkError(f"{out} is a fitted model; choose a new --out folder for the benchmark")
     world = world_file(variant)
     defaults = read_defaults(world)
     spp = spp or (SMALL_SPP if size == "small" else int(defaults.get("spp", 128)))

@@ -59,24 +59,27 @@ def fit(
     learning_rate: float = typer.Option(0.01, help="Adam learning rate."),
     channels: int = typer.Option(3, help="VGG16 channels to select."),
     shadows: bool = typer.Option(True, "--shadows/--no-shadows", help="Hard shadows while fitting."),
+    observation: str = typer.Option("phong", help="Observation model: phong (point lights and a constant ambient "
+                                                  "term, the paper's) or hemisphere (also a fitted sky and ground "
+                                                  "that light and are mirrored by every surface)."),
+    light_radius: float = typer.Option(0.0, help="Widen every light into a disc of this radius (metres): soft "
+                                                 "shadows, in the fit and in every render of the model (0: point "
+                                                 "lights, the paper's)."),
 ) -> None:
     """Training stage: scene optimisation, feature selection and priors -> a fitted-model folder."""
     from ..fit.model import fit_model
     from ..fit.scene_opt import SceneOptConfig
 
     config = SceneOptConfig(epochs=epochs, material_passes=material_passes, global_passes=global_passes,
-                            learning_rate=learning_rate, shadows=shadows)
-    bar, update = progress_bar("fit")
-    tasks = {}
+                            learning_rate=learning_rate, shadows=shadows, light_radius=light_radius,
+                            observation=observation)
+    # one bar named by the stage; written to a file (a background fit's log) it prints plain lines
+    bar, track_stage = phase_progress_bar("fit")
 
     def track(stage: str, done: int, total: int, loss: float) -> None:
-        if stage not in tasks:
-            tasks[stage] = bar.add_task(stage, total=total)
-        description = f"{stage} (loss {loss:.5f})" if stage == "scene" else stage
-        bar.update(tasks[stage], completed=done, total=total, description=description)
+        track_stage(stage, done, total)
 
     with bar:
-        bar.remove_task(bar.task_ids[0])
         model = fit_model(dataset_dir, out, [s.strip() for s in stages.split(",") if s.strip()],
                           scene_config=config, channels=channels, progress=track)
     summary = {stage: {k: v for k, v in figures.items() if k != "config"}
@@ -111,25 +114,30 @@ def infer(
     from ..fit.model import FittedModel
     from ..images import load_observation
     from ..infer.posterior import default_likelihood, infer_image
-    from ..files import claim_output_folder
+    from ..files import claim_output_folder, folder_lock
     from ..infer.report import read_material_rule, write_report
 
-    fitted = FittedModel(model)
     observed = load_observation(image)
-    rules = read_material_rule(fitted, material_rule) if material_rule else None   # refused before sampling
-    claim_output_folder(output, "posterior.nc", "mitsuba-p3 infer")
-    config = choose_sampler(sampler, SamplerConfig(chains=chains, steps=steps, burn_in=burn_in,
-                                                   tune_rounds=tune_rounds, tune_steps=tune_steps, seed=seed),
-                            particles, noise, sigma, bridge)
-    bar, track = phase_progress_bar("sampling")
+    # a reader's lock on the model: a fit writing it now is refused here, and no fit starts meanwhile
+    with folder_lock(model, "mitsuba-p3 infer", shared=True):
+        fitted = FittedModel(model)
+        rules = read_material_rule(fitted, material_rule) if material_rule else None   # refused before sampling
+        claim_output_folder(output, "posterior.nc", "mitsuba-p3 infer")
+        config = choose_sampler(sampler, SamplerConfig(chains=chains, steps=steps, burn_in=burn_in,
+                                                       tune_rounds=tune_rounds, tune_steps=tune_steps, seed=seed),
+                                particles, noise, sigma, bridge)
+        bar, track = phase_progress_bar("sampling")
 
-    with bar:
-        posterior = infer_image(fitted, observed, default_likelihood(fitted, likelihood, sigma, noise), config,
-                                renderer=renderer, progress=track, attrs={"image": str(image)})
-    written = write_report(posterior, fitted, output, renderer=renderer, rules=rules)
-    decided = json.loads(Path(written["estimate"]).read_text())["attributes"]
-    typer.echo(json.dumps({**written, "attributes": {k: decided[k] for k in ("shape", "material", "size", "colour")}},
-                          indent=2))
+        with bar:
+            posterior = infer_image(fitted, observed, default_likelihood(fitted, likelihood, sigma, noise), config,
+                                    renderer=renderer, progress=track, attrs={"image": str(image)})
+        written = write_report(posterior, fitted, output, renderer=renderer, rules=rules)
+    report = json.loads(Path(written["estimate"]).read_text())
+    decided = report["attributes"]
+    for warning in report["warnings"]:
+        typer.echo(f"warning: {warning}", err=True)
+    typer.echo(json.dumps({**written, "attributes": {k: decided[k] for k in ("shape", "material", "size", "colour")},
+                           "warnings": report["warnings"]}, indent=2))
 
 
 @app.command()

@@ -122,12 +122,14 @@ def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str,
     keep = np.linspace(0, draws - 1, min(config.keep_draws, draws)).astype(int)
     samples = {f"sample_{name}": posterior.draws(name).reshape(draws, -1)[keep].astype(np.float32)
                for name in CONTINUOUS}
-    atomic_npz(Path(out), **samples, sample_class=posterior.draws("kappa")[keep].astype(np.int8),
+    atomic_npz(Path(out), **samples, image_digest=np.array(image_digest(dataset, shot)), sample_class=posterior.draws("kappa")[keep].astype(np.int8),
                sample_shift=posterior.draws("shift")[keep].astype(np.float32),
                   shift=np.asarray(estimate["shift"], np.float64), yaw=np.float64(estimate["theta"]),
                   kappa=np.int64(estimate["kappa"]), seconds=np.float64(seconds),
                   max_r_hat=np.float64(summary["r_hat"].max()), min_ess=np.float64(summary["ess_bulk"].min()),
                   island_gap=np.float64(np.nan if gap is None else gap),
+                  log_bayes_factor_object=np.float64(np.nan if posterior.statistic("log_bayes_factor_object") is None
+                                                     else posterior.statistic("log_bayes_factor_object")),
                   render_threads=np.int64(_render_threads()), **_evidence(posterior),
                   **(_particle_arrays(posterior.particles) if likelihood == "p3" else {}))
     return out
@@ -189,6 +191,7 @@ class CachedPosterior:
     log_evidence: np.ndarray | None = None       # per hypothesis the SMC weighed (shape classes by default)
     shift_samples: np.ndarray | None = None      # (n, 2) posterior draws of the position (newer caches)
     island_gap: float = float("nan")             # SMC: spread of the leading hypothesis's runs' log Z (nats)
+    log_bayes_factor_object: float = float("nan")  # SMC: one object against the empty floor (< 0: nothing)
 
     @property
     def pose(self) -> dict:
@@ -205,7 +208,8 @@ class CachedPosterior:
                        float(f["seconds"]), float(f["max_r_hat"]), float(f["min_ess"]),
                        f["log_evidence"] if "log_evidence" in f.files else None,
                        f["sample_shift"].astype(np.float64) if "sample_shift" in f.files else None,
-                       float(f["island_gap"]) if "island_gap" in f.files else float("nan"))
+                       float(f["island_gap"]) if "island_gap" in f.files else float("nan"),
+                       float(f["log_bayes_factor_object"]) if "log_bayes_factor_object" in f.files else float("nan"))
 
 
 def cached_train_posteriors(dataset: Dataset, run_dir: Path, likelihood: str,
@@ -376,18 +380,29 @@ def check_scheduler(address: str) -> None:
                               "(dask scheduler) or drop --dask") from None
 
 
-def _cached(path: Path) -> bool:
-    """Whether a posterior is cached and readable. An unreadable file (a disk that filled up, a
-    copy cut short) is kept aside as NAME.corrupt, and the posterior is sampled again."""
+def image_digest(dataset: Dataset, shot) -> str:
+    """SHA-256 of a shot's image file: a cached posterior answers for these bytes only."""
+    return file_digest(shot.file)
+
+
+def _cached(path: Path, digest: str | None = None) -> bool:
+    """Whether a posterior is cached and readable, and made from the image as it is now (``digest``,
+    when the cache recorded one). An unreadable file (a disk that filled up, a copy cut short) is kept
+    aside as NAME.corrupt, a posterior of an image since replaced as NAME.stale, and the posterior is
+    sampled again. Caches from before the digest was kept are trusted."""
     if not path.exists():
         return False
     try:
         with np.load(path) as f:
             f["sample_class"], f["seconds"]
-        return True
+            recorded = str(f["image_digest"]) if "image_digest" in f.files else None
     except Exception:                      # numpy and zipfile raise many types for a damaged file
         os.replace(path, path.with_suffix(".corrupt"))
         return False
+    if digest is not None and recorded is not None and recorded != digest:
+        os.replace(path, path.with_suffix(".stale"))
+        return False
+    return True
 
 
 def compute_posteriors(dataset: Dataset, model_dir: Path, run_dir: Path, config: EvaluationConfig,
@@ -398,8 +413,9 @@ def compute_posteriors(dataset: Dataset, model_dir: Path, run_dir: Path, config:
     from joblib import Parallel, delayed, parallel_config
 
     tests = dataset.split("test") if shots is None else [dataset.shots[i] for i in shots]
+    digests = {shot.index: image_digest(dataset, shot) for shot in tests}
     todo = [(shot.index, likelihood) for likelihood in config.likelihoods for shot in tests
-            if not _cached(posterior_path(run_dir, likelihood, shot.index))]
+            if not _cached(posterior_path(run_dir, likelihood, shot.index), digests[shot.index])]
     total = len(tests) * len(config.likelihoods)
     done = total - len(todo)
     if progress:

@@ -197,4 +197,8 @@ def convergence(cached) -> dict:
     if gaps:
         out.update({"island_gap_median": float(np.median(gaps)), "island_gap_p90": float(np.percentile(gaps, 90)),
                     "island_gap_over_10": float(np.mean(np.asarray(gaps) > 10.0))})
+    factors = [f for f in (getattr(c, "log_bayes_factor_object", np.nan) for c in cached) if np.isfinite(f)]
+    if factors:
+        # images the empty floor explains better than one object: each shows an object, so this should be 0
+        out["unexplained_share"] = float(np.mean(np.asarray(factors) < 0))
     return out

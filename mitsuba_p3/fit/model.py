@@ -39,7 +39,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..files import atomic_json, atomic_npz, atomic_write, claim_output_folder
+from ..files import atomic_json, atomic_npz, atomic_write, claim_output_folder, folder_lock
 from ..benchmarks.dataset import Dataset, load_dataset
 from .features import Channel, channel_losses, select_channels
 from .noise import SPECTRUM_FILE, NoiseModel, fit_noise, load_spectra, save_spectra
@@ -249,8 +249,16 @@ def fit_model(dataset_dir: str | Path, out: str | Path, stages: Sequence[str] = 
     scene_config = scene_config or SceneOptConfig()
     dataset = load_dataset(dataset_dir, resolution=tuple(scene_config.resolution))
     root = claim_output_folder(out, MODEL_FILES, "mitsuba-p3 fit")
-    _check_same_dataset(root, dataset)
+    # held while the stages write: a second fit, or an infer reading the folder, is refused meanwhile
+    with folder_lock(root, "mitsuba-p3 fit"):
+        _check_same_dataset(root, dataset)
+        _run_stages(root, dataset, stages, scene_config, channels, prior_config, progress)
+    return FittedModel(root)
 
+
+def _run_stages(root: Path, dataset: Dataset, stages: Sequence[str], scene_config: SceneOptConfig,
+                channels: int, prior_config: PriorConfig | None, progress) -> None:
+    """:func:`fit_model`'s stages, in order, into the claimed and locked ``root``."""
     if "scene" in stages:
         start = time.perf_counter()
         fit = optimise_scene(dataset, scene_config,
@@ -301,4 +309,3 @@ def fit_model(dataset_dir: str | Path, out: str | Path, stages: Sequence[str] = 
                                          "seconds": round(time.perf_counter() - start, 1)})
         if progress:
             progress("noise", 1, 1, 0.0)
-    return FittedModel(root)

@@ -12,6 +12,11 @@ One deviation, stated: the shininess alpha is optimised as log(alpha), so a
 learning rate of 0.01 can move it between rubber (~4) and metal (~40) within
 the schedule; every other parameter is optimised directly and projected back
 to its valid range after each step.
+
+Two options beyond the paper, both off by default: ``observation="hemisphere"`` also fits the
+environment's sky and ground radiance with the globals (:mod:`mitsuba_p3.render.hemisphere`), and
+``light_radius`` widens every light into a disc for soft shadows (fixed, not fitted: visibility has
+no gradient; :mod:`mitsuba_p3.render.soft_shadows`).
 """
 from __future__ import annotations
 
@@ -28,6 +33,11 @@ from ..shapes import shape_index
 MATERIAL_KEYS = ("colour", "ambient", "diffuse", "specular", "shininess")
 GLOBAL_KEYS = ("light_position", "light_intensity", "floor_colour", "floor_ambient", "floor_diffuse",
                "floor_pattern")
+# the environment's two hemispheres, fitted with the globals under the hemisphere observation model
+HEMISPHERE_KEYS = ("sky", "ground")
+OBSERVATIONS = ("phong", "hemisphere")
+# where the sky and ground start (radiance, display units): a dim grey environment
+INITIAL_HEMISPHERE = 0.05
 
 
 
@@ -45,6 +55,10 @@ class SceneOptConfig:
     pattern_size: int = 200
     resolution: tuple = (120, 160)
     shadows: bool = True   # observations have shadows; fit the floor without baking them in
+    light_radius: float = 0.0   # metres: lights widened into discs, soft shadows (0: the paper's point lights)
+    # phong: point lights and a constant ambient term (the paper's); hemisphere: also a fitted sky and ground
+    # (render/hemisphere.py)
+    observation: str = "phong"
     seed: int = 777
     init_material: dict = field(default_factory=lambda: {"ambient": 0.1, "diffuse": 0.9, "specular": 0.5,
                                                          "shininess": 4.0})
@@ -56,6 +70,10 @@ class SceneOptConfig:
         check_counts(self, {"epochs": 1, "material_passes": 0, "global_passes": 0, "lights": 1, "pattern_size": 1,
                             "seed": 0, "snapshots": 0}, "fit ")
         check_positive(self, ("learning_rate",), "fit ")
+        if self.observation not in OBSERVATIONS:
+            raise ConfigError(f"unknown observation model {self.observation!r}; choose {' or '.join(OBSERVATIONS)}")
+        if not (np.isfinite(self.light_radius) and 0.0 <= self.light_radius <= 0.5):
+            raise ConfigError(f"fit light_radius must be in [0, 0.5] metres; got {self.light_radius}")
         object.__setattr__(self, "resolution", tuple(self.resolution))
         if len(self.resolution) != 2 or min(self.resolution) < 1:
             raise ConfigError(f"fit resolution must be (height, width); got {self.resolution}")
@@ -104,6 +122,8 @@ def _project_globals(g: dict[str, np.ndarray]) -> None:
     g["floor_ambient"] = np.maximum(g["floor_ambient"], 0.0)
     g["floor_diffuse"] = np.maximum(g["floor_diffuse"], 0.0)
     g["floor_pattern"] = np.clip(g["floor_pattern"], 0.0, 4.0)
+    for key in HEMISPHERE_KEYS:
+        g[key] = np.maximum(g[key], 0.0)
 
 
 @dataclass
@@ -127,7 +147,10 @@ class SceneFit:
                       pattern=np.asarray(g["floor_pattern"], np.float32), pattern_file="pattern.png")
         return Scene(camera=Camera(), lights=lights, ambient_light=np.ones(3), floor=floor,
                      object=SceneObject("sphere", np.zeros(2), 0.0, np.full(3, 0.035),
-                                        PhongMaterial.named("gray", "rubber")))
+                                        PhongMaterial.named("gray", "rubber")),
+                     light_radius=float(g.get("light_radius", 0.0)),
+                     sky=np.asarray(g.get("sky", np.zeros(3)), np.float64),
+                     ground=np.asarray(g.get("ground", np.zeros(3)), np.float64))
 
 
 def initial_globals(config: SceneOptConfig) -> dict[str, np.ndarray]:
@@ -145,6 +168,9 @@ def initial_globals(config: SceneOptConfig) -> dict[str, np.ndarray]:
         "floor_diffuse": np.float32(f["diffuse"]),
         # Floor albedo = colour x pattern, so the pattern starts at ones (zeros would be black).
         "floor_pattern": np.ones((config.pattern_size, config.pattern_size, 3), np.float32),
+        "light_radius": np.float32(config.light_radius),   # fixed, not optimised (visibility has no gradient)
+        **{key: np.full(3, INITIAL_HEMISPHERE if config.observation == "hemisphere" else 0.0, np.float32)
+           for key in HEMISPHERE_KEYS},
     }
 
 
@@ -205,6 +231,7 @@ def optimise_scene(dataset: Dataset, config: SceneOptConfig | None = None,
     total = config.epochs * passes_per_epoch * len(shots)
     step = 0
     material_keys = list(MATERIAL_KEYS)
+    global_keys = GLOBAL_KEYS + (HEMISPHERE_KEYS if config.observation == "hemisphere" else ())
     for epoch in range(config.epochs):
         for pass_index in range(passes_per_epoch):
             phase = "materials" if pass_index < config.material_passes else "globals"
@@ -217,7 +244,7 @@ def optimise_scene(dataset: Dataset, config: SceneOptConfig | None = None,
                     material_adam[keys[i]].step(m, grads)
                     _project_material(m)
                 else:
-                    loss, grads = renderer.loss_and_grad(params_for(i), targets[i], GLOBAL_KEYS)
+                    loss, grads = renderer.loss_and_grad(params_for(i), targets[i], global_keys)
                     global_adam.step(globals_, grads)
                     _project_globals(globals_)
                 losses.append(loss)

@@ -53,6 +53,31 @@ def posterior_misfit(posterior: Posterior, fitted: FittedModel, observed: np.nda
     return model_misfit(fitted, observed, pose)
 
 
+# a posterior median half-extent further than this many prior standard deviations (of log size) from the
+# prior's centre is outside the model's range (3.29: the prior's central 99.9%)
+RANGE_SIGMAS = 3.29
+
+
+def range_warnings(posterior: Posterior, fitted: FittedModel, diagnostics: dict) -> list[str]:
+    """What says the answer is about something the model cannot explain: the empty floor explains the
+    image better than one object (an SMC posterior's log Bayes factor < 0), or the object's size lies
+    outside the prior's central 99.9%. Empty when the answer is within the model."""
+    warnings = []
+    factor = diagnostics.get("log_bayes_factor_object")
+    if factor is not None and np.isfinite(factor) and factor < 0:
+        warnings.append(f"the empty floor explains this image better than one object (log Bayes factor "
+                        f"{factor:.1f}): there may be no object here")
+    config = fitted.prior.config
+    size = np.median(posterior.draws("scale").reshape(-1, 3), axis=0)
+    far = np.abs(np.log(size) - config.scale_log_mu) / config.scale_log_sigma
+    if np.any(far > RANGE_SIGMAS):
+        warnings.append(f"the object's size ({', '.join(f'{v * 1000:.0f}' for v in size)} mm half-extents) lies "
+                        f"outside the range the model was fitted on (the prior's central 99.9%, "
+                        f"{1000 * np.exp(config.scale_log_mu - RANGE_SIGMAS * config.scale_log_sigma):.0f}-"
+                        f"{1000 * np.exp(config.scale_log_mu + RANGE_SIGMAS * config.scale_log_sigma):.0f} mm)")
+    return warnings
+
+
 def write_report(posterior: Posterior, fitted: FittedModel, out: str | Path, renderer: str = "mitsuba",
                  samples: int = 6, truth: dict | None = None, rules: AttributeRules | None = None) -> dict[str, str]:
     """posterior.nc, summary.csv, estimate.json and the figures; returns what was written. The
@@ -70,7 +95,9 @@ def write_report(posterior: Posterior, fitted: FittedModel, out: str | Path, ren
         # one pool of resampled draws: no R-hat; the independent runs' agreement instead
         diagnostics = {"island_gap": posterior.statistic("island_gap"),
                        "temperatures": posterior.statistic("temperatures"),
-                       "forced": posterior.statistic("forced")}
+                       "forced": posterior.statistic("forced"),
+                       # one object against the empty floor (smc.object_evidence): < 0, nothing explained
+                       "log_bayes_factor_object": posterior.statistic("log_bayes_factor_object")}
     else:
         diagnostics = {"max_r_hat": float(summary["r_hat"].max()), "min_ess_bulk": float(summary["ess_bulk"].min())}
     attrs = dict(posterior.idata.posterior.attrs)
@@ -82,8 +109,17 @@ def write_report(posterior: Posterior, fitted: FittedModel, out: str | Path, ren
     attributes = {**rules.decide({**draws, "class": posterior.draws("kappa")}, misfit),
                   "material_rule": rules.material_features if rules.material_model is not None else "one kind",
                   **({"misfit": misfit} if misfit is not None else {})}
+    from ..files import file_digest
+
+    warnings = range_warnings(posterior, fitted, diagnostics)
+
+    # what the answer depends on: the model's files as they were read (a refit changes model.json)
+    provenance = {"model": str(Path(fitted.root).resolve()), "model_digest": file_digest(Path(fitted.root) / "model.json"),
+                  **({"image": attrs["image"], "image_digest": file_digest(attrs["image"])}
+                     if attrs.get("image") and Path(str(attrs["image"])).is_file() else {})}
     atomic_json(estimate_file, {"estimate": estimate, "attributes": attributes, "diagnostics": diagnostics,
-                                "seconds": attrs.get("seconds"), "acceptance": attrs.get("acceptance")})
+                                "seconds": attrs.get("seconds"), "acceptance": attrs.get("acceptance"),
+                                "provenance": provenance, "warnings": warnings})
     written["estimate"] = str(estimate_file)
 
     height, width = observed.shape[:2]

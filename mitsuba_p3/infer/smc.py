@@ -572,6 +572,25 @@ class Particles(NamedTuple):
     window: tuple | None
 
 
+def check_sampler_memory(config: SMCConfig, hypotheses: int, pixels: int, limit: float | None = None) -> None:
+    """Refuse, before any render, settings whose widest step (the first reweighting: every hypothesis's
+    ``islands`` x ``particles`` x ``oversample`` draws of ``pixels`` each, as material bases) would need
+    more memory than ``limit`` bytes (default: the renderer's, :func:`~mitsuba_p3.render.contract.memory_limit`),
+    with the largest particle count that fits."""
+    from ..errors import InferenceError
+    from ..render.contract import BYTES_PER_PIXEL, memory_limit
+
+    limit = memory_limit() if limit is None else limit
+    renders = hypotheses * config.islands * config.particles * config.oversample
+    need = renders * pixels * BYTES_PER_PIXEL["bases"]
+    if need > limit:
+        fits = int(limit // (hypotheses * config.islands * config.oversample * pixels * BYTES_PER_PIXEL["bases"]))
+        raise InferenceError(f"{config.particles:,} particles: the SMC's first step renders {renders:,} images of "
+                             f"{pixels:,} pixels, about {need / 2 ** 30:,.1f} GB, over the limit of "
+                             f"{limit / 2 ** 30:.1f} GB; use --particles {max(fits, 4)} or fewer (or set "
+                             "MITSUBA_P3_MEMORY_GB)")
+
+
 def sample_smc(core, observation, config: SMCConfig | None = None,
                progress: Callable[[str, int, int], None] | None = None,
                start: Particles | None = None) -> SamplerRun:
@@ -587,6 +606,8 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
     space = hypotheses_of(core.prior, config.kinds)
     count = len(space.names)
     image = np.asarray(observation["image"])
+    scored = config.window if config.window and core.renderer_kind == "mitsuba" else image.shape[:2]
+    check_sampler_memory(config, count, int(np.prod(scored)))
     window = None
     if start is not None:
         window = start.window
@@ -601,7 +622,27 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
             window = core.window_for(image, tuple(config.window))
             observation = core.observe(image, window) if window else observation
         rows, pooled, rounds = _rounds(core, observation, image, space, config, rng, key, progress)
-    return _sampler_run(core, rows, pooled, space, config, rng, window, rounds, time.perf_counter() - begin)
+    run = _sampler_run(core, rows, pooled, space, config, rng, window, rounds, time.perf_counter() - begin)
+    run.statistics.update(object_evidence(core, observation, rows, space, pooled))
+    return run
+
+
+# a half-extent this small (metres) is far below a pixel: the render is the empty floor
+EMPTY_SCALE = 1e-5
+
+
+def object_evidence(core, observation, rows: Rows, space: Hypotheses, pooled: np.ndarray) -> dict:
+    """Whether the image shows an object the model explains: the log evidence of "one object" (the
+    hypotheses' evidence under their prior) against the empty floor, a model without parameters whose
+    evidence is its likelihood, scored on the same window by the same likelihood. A negative log
+    Bayes factor says the floor alone explains the image better than any object would."""
+    import jax.numpy as jnp
+
+    z = np.array(rows.state.position[0, 0], np.float32)
+    z[SLICES["scale"]] = np.log(EMPTY_SCALE)
+    empty = float(core.log_likelihood(jnp.asarray(z), observation))
+    one_object = float(np.logaddexp.reduce(space.log_prior + pooled))
+    return {"empty_log_likelihood": empty, "log_bayes_factor_object": one_object - empty}
 
 
 def _rounds(core, observation, image, space: Hypotheses, config: SMCConfig, rng, key, progress):

@@ -16,6 +16,9 @@ ambient, diffuse,         (B,)        k_a, k_d, k_s, alpha of the object
 specular, shininess
 light_position            K, 3        point-light positions, metres
 light_intensity           K, 3        point-light RGB intensities
+light_radius              ()          lights' radius, metres: soft shadows (0: point lights)
+sky, ground               3, 3        radiance of the environment's upper and lower hemisphere
+                                      (the hemisphere term of :mod:`.hemisphere`; 0: point lights only)
 ambient_light             3           A of the ambient term k_a c A
 floor_colour              3           floor albedo, times floor_pattern
 floor_ambient, ...        ()          floor k_a, k_d, k_s, alpha
@@ -38,14 +41,15 @@ OBJECT_SHAPES: dict[str, tuple[int, ...]] = {
     "ambient": (), "diffuse": (), "specular": (), "shininess": (),
 }
 GLOBAL_SHAPES: dict[str, tuple[int, ...] | None] = {
-    "light_position": None, "light_intensity": None, "ambient_light": (3,),
+    "light_position": None, "light_intensity": None, "light_radius": (), "sky": (3,), "ground": (3,), "ambient_light": (3,),
     "floor_colour": (3,), "floor_ambient": (), "floor_diffuse": (), "floor_specular": (),
     "floor_shininess": (), "floor_pattern": None,
 }
 KEYS = tuple(OBJECT_SHAPES) + tuple(GLOBAL_SHAPES)
 FLOAT_KEYS = tuple(k for k in KEYS if k != "kappa")
 # Parameters a renderer differentiates (geometry is sampled, not differentiated).
-DIFFERENTIABLE_KEYS = tuple(k for k in FLOAT_KEYS if k not in ("shift", "theta", "scale"))
+# (and the lights' radius, which acts through visibility alone)
+DIFFERENTIABLE_KEYS = tuple(k for k in FLOAT_KEYS if k not in ("shift", "theta", "scale", "light_radius"))
 
 
 # Peak bytes per rendered pixel, about twice what was measured (`/usr/bin/time`, mitsuba-p3 render at
@@ -138,6 +142,10 @@ def check_params(params: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     for key, base in GLOBAL_SHAPES.items():
         if base is not None and out[key].shape != base:
             raise SceneError(f"parameter {key!r} must have shape {base}, got {out[key].shape}")
+    if np.any(out["sky"] < 0) or np.any(out["ground"] < 0):
+        raise SceneError("sky and ground radiance must be >= 0")
+    if out["light_radius"] < 0:
+        raise SceneError(f"light_radius must be >= 0 metres, got {float(out['light_radius'])}")
     pattern = out["floor_pattern"]
     if pattern.ndim != 3 or pattern.shape[2] != 3:
         raise SceneError(f"floor_pattern must be (H, W, 3), got {pattern.shape}")
@@ -158,7 +166,10 @@ class Renderer:
 
     name = "renderer"
 
-    def __init__(self, scene, height: int | None = None, width: int | None = None, shadows: bool | None = None):
+    def __init__(self, scene, height: int | None = None, width: int | None = None, shadows: bool | None = None,
+                 shadow_samples: int | None = None):
+        from .soft_shadows import disc_pattern, samples_for
+
         scene.validate()
         self.scene = scene
         self.height = int(height or scene.camera.height)
@@ -168,6 +179,10 @@ class Renderer:
         self.shadows = scene.shadows if shadows is None else bool(shadows)
         self.floor_half_size = float(scene.floor.half_size)
         self.params = check_params(scene.params())  # the scene's values; render() overrides some
+        # Points on each light's disc for the shadow rays (one: the centre, hard shadows); fixed at
+        # construction, so a renderer made for a radius search passes shadow_samples explicitly.
+        self.shadow_samples = samples_for(scene.light_radius, shadow_samples)
+        self.shadow_pattern = disc_pattern(self.shadow_samples)
 
     def merged(self, params: Mapping[str, np.ndarray] | None) -> dict[str, np.ndarray]:
         """The scene's parameters overridden by ``params``, checked."""

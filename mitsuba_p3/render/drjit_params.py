@@ -34,6 +34,9 @@ class DrParams:
     shininess: mi.Float
     light_position: mi.Point3f
     light_intensity: mi.Color3f
+    light_radius: mi.Float
+    sky: mi.Color3f
+    ground: mi.Color3f
     ambient_light: mi.Color3f
     floor_colour: mi.Color3f
     floor_ambient: mi.Float
@@ -91,6 +94,9 @@ def to_drjit(params: Mapping[str, np.ndarray], pattern: mi.TensorXf | None = Non
         specular=scalar("specular"), shininess=scalar("shininess"),
         light_position=_vec(mi.Point3f, params["light_position"]),
         light_intensity=_vec(mi.Color3f, params["light_intensity"]),
+        light_radius=scalar("light_radius"),
+        sky=_vec(mi.Color3f, np.asarray(params["sky"]).reshape(1, 3)),
+        ground=_vec(mi.Color3f, np.asarray(params["ground"]).reshape(1, 3)),
         ambient_light=_vec(mi.Color3f, np.asarray(params["ambient_light"]).reshape(1, 3)),
         floor_colour=_vec(mi.Color3f, np.asarray(params["floor_colour"]).reshape(1, 3)),
         floor_ambient=scalar("floor_ambient"), floor_diffuse=scalar("floor_diffuse"),

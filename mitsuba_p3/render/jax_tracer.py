@@ -5,7 +5,8 @@ description and the contract, so the two check each other. It intersects the
 analytic shapes in the canonical object frame (see :mod:`mitsuba_p3.shapes`):
 a sphere (an ellipsoid after scaling), a box and a capped cylinder, each under
 shift, yaw and scale. The floor z = 0 carries a bilinear pattern texture. The
-same Phong model and point lights are used, with optional hard shadows and rays
+same Phong model and point lights are used, with optional shadows (hard, or soft
+from lights widened into discs: :mod:`.soft_shadows`) and rays
 through pixel centres.
 
 Specialised rather than switched: each shape class has its own traced function,
@@ -33,6 +34,7 @@ import numpy as np
 
 from ..scene import Camera, Scene
 from ..shapes import SHAPES
+from . import hemisphere
 from .contract import OBJECT_SHAPES, Renderer, is_batched, unbatch
 
 BATCHINGS = ("map", "vmap")
@@ -221,8 +223,33 @@ def _materialised(fn, predicate):
     return jax.lax.cond(predicate, fn, lambda: jax.tree_util.tree_map(jnp.zeros_like, jax.eval_shape(fn)))
 
 
+def _visibility(intersect, pose, point, normal, to_light, distance, centre, radius, pattern):
+    """The share of a light's disc reached by shadow rays from just above ``point`` (N,): the
+    disc has radius ``radius`` about ``centre`` and faces the point; ``pattern`` (n, 2) are its
+    sample points in the unit disc (one: the centre, i.e. a hard shadow along ``to_light``)."""
+    start = point + normal * SHADOW_OFFSET
+    if pattern is None or len(pattern) == 1:
+        t_block, _ = _object_hit(intersect, pose, start, to_light)
+        return (t_block >= distance).astype(point.dtype)
+    axis = centre - start
+    axis = axis * jax.lax.rsqrt(_dot(axis, axis))
+    # Duff et al.'s orthonormal basis about the axis (as the Mitsuba renderer)
+    sign = jnp.where(axis[2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + axis[2])
+    b = axis[0] * axis[1] * a
+    first = jnp.stack([1.0 + sign * axis[0] * axis[0] * a, sign * b, -sign * axis[0]])
+    second = jnp.stack([b, sign + axis[1] * axis[1] * a, -axis[1]])
+    visible = jnp.zeros_like(distance)
+    for x, y in np.asarray(pattern).tolist():
+        ray = centre + radius * (x * first + y * second) - start
+        length = jnp.sqrt(_dot(ray, ray))
+        t_block, _ = _object_hit(intersect, pose, start, ray / length)
+        visible = visible + (t_block >= length).astype(point.dtype) / len(pattern)
+    return visible
+
+
 def trace(shape: str, p: Mapping[str, jnp.ndarray], origin, directions, floor_half_size: float,
-          shadows: bool, ids: bool = False, bases: bool = False):
+          shadows: bool, ids: bool = False, bases: bool = False, shadow_pattern=None):
     """Render one parameter set of a shape class from rays (3, N).
 
     Returns (N, 3) colours, or (N,) surface ids, or with ``bases`` the (N, 4, 3)
@@ -260,13 +287,21 @@ def trace(shape: str, p: Mapping[str, jnp.ndarray], origin, directions, floor_ha
         cos_light = _dot(normal, l)
         reflected = 2 * cos_light * normal - l
         lit = cos_light > 0
+        visible = 1.0
         if shadows:
-            start = point + normal * SHADOW_OFFSET
-            t_block, _ = jax.lax.stop_gradient(_object_hit(intersect, pose, start, l))
-            lit = lit & (t_block >= jax.lax.stop_gradient(distance))
+            visible = jax.lax.stop_gradient(_visibility(
+                intersect, pose, point, normal, l, distance, p["light_position"][k][:, None],
+                p["light_radius"], shadow_pattern))
         intensity = p["light_intensity"][k][:, None]
-        lit_diffuse = lit_diffuse + jnp.where(lit, intensity * cos_light, 0.0)
-        lit_specular = lit_specular + jnp.where(lit, intensity * highlight(shininess, _dot(reflected, view)), 0.0)
+        lit_diffuse = lit_diffuse + jnp.where(lit, visible * intensity * cos_light, 0.0)
+        lit_specular = lit_specular + jnp.where(lit, visible * intensity * highlight(shininess, _dot(reflected, view)),
+                                                0.0)
+    # the environment as two hemispheres (render/hemisphere.py): zero unless the world has a sky or ground
+    sky, ground = p["sky"][:, None], p["ground"][:, None]
+    lit_diffuse = lit_diffuse + hemisphere.diffuse_term(normal[2], sky, ground)
+    reflected_z = 2 * _dot(normal, view) * normal[2] - view[2]
+    lit_specular = lit_specular + hemisphere.specular_term(reflected_z, shininess, sky, ground, jnp.arcsin,
+                                                           jax.lax.erf, jnp.sqrt, jnp.clip)
     ambient_light = p["ambient_light"][:, None]
     result = ambient * albedo * ambient_light + diffuse * albedo * lit_diffuse + specular * lit_specular
     valid = hit_obj | hit_floor
@@ -291,8 +326,8 @@ class JaxRenderer(Renderer):
     name = "jax"
 
     def __init__(self, scene: Scene, height: int | None = None, width: int | None = None,
-                 shadows: bool | None = None):
-        super().__init__(scene, height, width, shadows)
+                 shadows: bool | None = None, shadow_samples: int | None = None):
+        super().__init__(scene, height, width, shadows, shadow_samples)
         self.batching = batching_for()
         origin, directions = camera_rays(scene.camera, self.height, self.width)
         self._origin, self._directions = jnp.asarray(origin), jnp.asarray(directions.T)  # (3, N)
@@ -307,7 +342,8 @@ class JaxRenderer(Renderer):
 
     # ------------------------------------------------------------------ pure JAX
     def _trace_shape(self, shape: str, p, ids: bool = False, bases: bool = False):
-        out = trace(shape, p, self._origin, self._directions, self.floor_half_size, self.shadows, ids, bases)
+        out = trace(shape, p, self._origin, self._directions, self.floor_half_size, self.shadows, ids, bases,
+                    self.shadow_pattern)
         return out.reshape(self.height, self.width, *(() if ids else (4, 3) if bases else (3,)))
 
     def _trace_batch(self, p, bases: bool = False):

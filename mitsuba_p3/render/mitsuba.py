@@ -8,7 +8,9 @@ A change of pose, size or class is therefore only per-ray arithmetic: no BVH
 rebuild (4 ms for a 5K-triangle mesh) and no kernel recompilation, and a batch
 of B parameter sets is a single launch of B*H*W rays. The floor z = 0 is
 intersected analytically and shaded by a ``phong`` BSDF whose pattern is a
-Mitsuba bitmap texture. Shading sums :func:`~mitsuba_p3.render.phong.phong_terms` over the lights.
+Mitsuba bitmap texture. Shading sums :func:`~mitsuba_p3.render.phong.phong_terms` over the lights;
+with shadows on, each light's visibility is the share of its disc's fixed sample points that a
+shadow ray reaches (:mod:`.soft_shadows`; one point, the centre, for hard shadows).
 
 Gradients flow (Dr.Jit AD) to colours, materials, lights, ambient light and the
 floor; the geometry is detached, since visibility edges make plain-AD pose
@@ -29,6 +31,7 @@ mi = mitsuba()
 import drjit as dr  # noqa: E402  (after the backend has chosen libLLVM)
 
 from .drjit_params import DrParams, gradients_of, to_drjit, to_drjit_pattern  # noqa: E402
+from . import hemisphere  # noqa: E402
 from .phong import SHADOW_OFFSET, phong_terms, pixel_centre_rays  # noqa: E402
 
 _BACKEND = jit_backend()  # renders open a fresh scope of the chosen variant's backend
@@ -68,8 +71,8 @@ class MitsubaRenderer(Renderer):
     name = "mitsuba"
 
     def __init__(self, scene: Scene, height: int | None = None, width: int | None = None,
-                 shadows: bool | None = None):
-        super().__init__(scene, height, width, shadows)
+                 shadows: bool | None = None, shadow_samples: int | None = None):
+        super().__init__(scene, height, width, shadows, shadow_samples)
 
         cam = scene.camera
         self._sensor = mi.load_dict({
@@ -284,6 +287,31 @@ class MitsubaRenderer(Renderer):
         out = mi.UInt32(ids).numpy().astype(np.int32).reshape(p.batch, self.height, self.width)
         return out if is_batched(merged) else out[0]
 
+    def _visibility(self, frame, point, normal, centre, radius, active):
+        """The share of the light's disc (radius ``radius`` about ``centre``, facing the point) that
+        shadow rays from just above ``point`` reach past the object: 0 or 1 for one sample."""
+        start = point + normal * SHADOW_OFFSET
+        if self.shadow_samples == 1:  # the light's centre, as seen from the point itself
+            to_light = centre - point
+            distance = dr.norm(to_light)
+            occluded = self._trace_object(frame, start, to_light / distance, distance, test_only=True, active=active)
+            return dr.select(occluded, 0.0, 1.0)
+        axis = dr.normalize(centre - start)
+        # Duff et al.'s orthonormal basis about the axis (the JAX tracer uses the same formula)
+        sign = dr.select(axis.z >= 0, 1.0, -1.0)
+        a = -1.0 / (sign + axis.z)
+        b = axis.x * axis.y * a
+        first = mi.Vector3f(1.0 + sign * axis.x * axis.x * a, sign * b, -sign * axis.x)
+        second = mi.Vector3f(b, sign + axis.y * axis.y * a, -axis.y)
+        visible = mi.Float(0.0)
+        weight = 1.0 / self.shadow_samples
+        for x, y in self.shadow_pattern.tolist():
+            to_light = centre + radius * (x * first + y * second) - start
+            distance = dr.norm(to_light)
+            occluded = self._trace_object(frame, start, to_light / distance, distance, test_only=True, active=active)
+            visible += dr.select(occluded, 0.0, weight)
+        return visible
+
     def _shade(self, p: DrParams, bases: bool = False):
         """The image's colours per ray or, with ``bases``, its material bases (A, D, S, F)."""
         rays = p.batch * self.height * self.width
@@ -331,13 +359,18 @@ class MitsubaRenderer(Renderer):
             diffuse_term, specular_term = phong_terms(shininess, cos_light, dr.dot(reflected, view))
             if self.shadows:
                 with dr.suspend_grad():
-                    start = point + normal * SHADOW_OFFSET
-                    occluded = self._trace_object(frame, start, dr.detach(direction_l), dr.detach(distance),
-                                                  test_only=True, active=valid & (cos_light > 0))
-                diffuse_term = dr.select(occluded, 0.0, diffuse_term)
-                specular_term = dr.select(occluded, 0.0, specular_term)
+                    visible = self._visibility(frame, point, normal, dr.detach(position),
+                                               dr.detach(p.light_radius), valid & (cos_light > 0))
+                diffuse_term = diffuse_term * visible
+                specular_term = specular_term * visible
             lit_diffuse += intensity * diffuse_term
             lit_specular += intensity * specular_term
+        # the environment as two hemispheres (render/hemisphere.py): zero unless the world has a sky or ground
+        sky, ground = per_ray(mi.Color3f, p.sky), per_ray(mi.Color3f, p.ground)
+        lit_diffuse += hemisphere.diffuse_term(normal.z, sky, ground)
+        reflected_z = 2.0 * dr.dot(normal, view) * normal.z - view.z
+        lit_specular += hemisphere.specular_term(reflected_z, shininess, sky, ground, dr.asin, dr.erf, dr.sqrt,
+                                                 dr.clip)
         result = albedo * (ambient * ambient_light + diffuse * lit_diffuse) + specular * lit_specular
         image = dr.select(valid, dr.clip(result, 0.0, 1.0), 0.0)
         if not bases:

@@ -189,7 +189,16 @@ class PhongIntegrator(mi.SamplingIntegrator):
        - The ambient light A of the term k_a c A. (Default: 1)
      * - shadows
        - |bool|
-       - Hard shadows: a shadow ray towards every light (V_l). (Default: false)
+       - Shadows: shadow rays towards every light (V_l). (Default: false)
+     * - light_radius
+       - |float|
+       - Every light widened into a disc of this radius (metres) facing the shaded point: V_l is
+         the share of its fixed sample points a shadow ray reaches (soft shadows,
+         :mod:`mitsuba_p3.render.soft_shadows`). 0: point lights, hard shadows. (Default: 0)
+     * - sky, ground
+       - |spectrum|
+       - Radiance of the environment above and below the horizon, added to the diffuse and specular
+         light sums (:mod:`mitsuba_p3.render.hemisphere`). (Default: 0, 0)
 
     Every point light is evaluated at every hit (Mitsuba's ``direct`` picks one at
     random), with the Phong model's convention of no distance fall-off, and rays
@@ -202,6 +211,12 @@ class PhongIntegrator(mi.SamplingIntegrator):
         super().__init__(props)
         self.ambient = mi.Color3f(props.get("ambient", 1.0))
         self.shadows = bool(props.get("shadows", False))
+        self.light_radius = float(props.get("light_radius", 0.0))
+        self.sky = mi.Color3f(props.get("sky", 0.0))
+        self.ground = mi.Color3f(props.get("ground", 0.0))
+        from .soft_shadows import disc_pattern, samples_for
+
+        self.pattern = disc_pattern(samples_for(self.light_radius))
 
     def shade(self, scene, ray: mi.Ray3f, active=True) -> tuple[mi.Color3f, mi.Bool]:
         """Phong radiance along each ray and whether it hit anything."""
@@ -215,6 +230,14 @@ class PhongIntegrator(mi.SamplingIntegrator):
         si = dr.select(valid & refined.is_valid(), refined, si)
         bsdf = si.bsdf(ray)
         result = bsdf.eval_attribute_3("ambient_reflectance", si, valid) * self.ambient
+        from . import hemisphere
+
+        normal, view = si.sh_frame.n, -ray.d
+        shininess = bsdf.eval_attribute_1("shininess", si, valid)
+        result += bsdf.eval_diffuse_reflectance(si, valid) * hemisphere.diffuse_term(normal.z, self.sky, self.ground)
+        result += bsdf.eval_attribute_1("specular", si, valid) * hemisphere.specular_term(
+            2.0 * dr.dot(normal, view) * normal.z - view.z, shininess, self.sky, self.ground, dr.asin, dr.erf,
+            dr.sqrt, dr.clip)
         ctx = mi.BSDFContext()
         for position, intensity in point_lights(scene):
             to_light = position - si.p
@@ -224,9 +247,18 @@ class PhongIntegrator(mi.SamplingIntegrator):
             if self.shadows:
                 # An explicit offset: spawn_ray_to's error bound is too tight for scaled instances.
                 origin = si.p + si.n * SHADOW_OFFSET
-                shadow_ray = mi.Ray3f(origin, direction, dr.norm(position - origin))
-                value = dr.select(scene.ray_test(shadow_ray, valid & (value.x + value.y + value.z > 0)),
-                                  0.0, value)
+                lit = valid & (value.x + value.y + value.z > 0)
+                if len(self.pattern) == 1:
+                    shadow_ray = mi.Ray3f(origin, direction, dr.norm(position - origin))
+                    value = dr.select(scene.ray_test(shadow_ray, lit), 0.0, value)
+                else:
+                    first, second = mi.coordinate_system(dr.normalize(position - origin))
+                    visible = mi.Float(0.0)
+                    for x, y in self.pattern.tolist():
+                        target = position + self.light_radius * (x * first + y * second)
+                        shadow_ray = mi.Ray3f(origin, dr.normalize(target - origin), dr.norm(target - origin))
+                        visible += dr.select(scene.ray_test(shadow_ray, lit), 0.0, 1.0 / len(self.pattern))
+                    value = value * visible
             result += intensity * value
         return dr.select(valid, dr.clip(result, 0.0, 1.0), 0.0), valid
 
@@ -246,7 +278,8 @@ class PhongIntegrator(mi.SamplingIntegrator):
         return image
 
     def to_string(self):
-        return f"PhongIntegrator[ambient={self.ambient}, shadows={self.shadows}]"
+        return (f"PhongIntegrator[ambient={self.ambient}, shadows={self.shadows}, "
+                f"light_radius={self.light_radius}]")
 
 
 _REGISTERED = False

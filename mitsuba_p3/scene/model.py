@@ -164,6 +164,10 @@ class Scene:
     floor: Floor = field(default_factory=Floor)
     object: SceneObject = field(default_factory=SceneObject)
     shadows: bool = False
+    light_radius: float = 0.0   # metres; > 0 softens the shadows (render/soft_shadows.py)
+    # radiance of the environment above and below the horizon (render/hemisphere.py); 0: point lights only
+    sky: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    ground: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def validate(self) -> "Scene":
         """Check every value; raise :class:`SceneError` naming the first bad one."""
@@ -173,6 +177,9 @@ class Scene:
             light.position = _vector(light.position, 3, f"light {i} position")
             light.intensity = _vector(light.intensity, 3, f"light {i} intensity", 0.0)
         self.ambient_light = _vector(self.ambient_light, 3, "ambient light", 0.0)
+        self.light_radius = _number(self.light_radius, "light radius", 0.0)
+        self.sky = _vector(self.sky, 3, "sky radiance", 0.0)
+        self.ground = _vector(self.ground, 3, "ground radiance", 0.0)
         self.floor.material.validate("floor")
         self.floor.half_size = _number(self.floor.half_size, "floor half-size", 1e-6)
         if self.floor.pattern is not None:
@@ -208,6 +215,9 @@ class Scene:
             "shininess": np.float32(obj.material.shininess),
             "light_position": np.array([l.position for l in self.lights], np.float32),
             "light_intensity": np.array([l.intensity for l in self.lights], np.float32),
+            "light_radius": np.float32(self.light_radius),
+            "sky": np.asarray(self.sky, np.float32),
+            "ground": np.asarray(self.ground, np.float32),
             "ambient_light": np.asarray(self.ambient_light, np.float32),
             "floor_colour": np.asarray(floor.material.colour, np.float32),
             "floor_ambient": np.float32(floor.material.ambient),

@@ -56,6 +56,11 @@ def scene_to_xml(scene: Scene, description: str = "") -> str:
     integrator = _el(root, "integrator", type="phong_integrator")
     _el(integrator, "rgb", name="ambient", value=fmt(scene.ambient_light))
     _el(integrator, "boolean", name="shadows", value=str(bool(scene.shadows)).lower())
+    if scene.light_radius > 0:
+        _el(integrator, "float", name="light_radius", value=fmt(scene.light_radius))
+    if np.any(scene.sky > 0) or np.any(scene.ground > 0):
+        _el(integrator, "rgb", name="sky", value=fmt(scene.sky))
+        _el(integrator, "rgb", name="ground", value=fmt(scene.ground))
 
     sensor = _el(root, "sensor", type="perspective")
     _el(sensor, "float", name="fov", value=fmt(cam.fov))
@@ -243,6 +248,11 @@ def load_scene(path: str | Path, overrides: Mapping[str, object] | None = None) 
             scene.ambient_light = _vector(p["ambient"].get("value"), 3, "ambient light", 0.0)
         if "shadows" in p:
             scene.shadows = p["shadows"].get("value", "false").lower() == "true"
+        if "light_radius" in p:
+            scene.light_radius = _number(p["light_radius"].get("value"), "light radius", 0.0)
+        for name in ("sky", "ground"):
+            if name in p:
+                setattr(scene, name, _vector(p[name].get("value"), 3, f"{name} radiance", 0.0))
 
     sensor = root.find("sensor")
     if sensor is None:
