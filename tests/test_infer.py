@@ -379,9 +379,11 @@ def test_footprint_proposal_density_is_normalised_and_matches_its_draws():
     np.testing.assert_allclose(draws.mean(axis=0), mean, atol=2e-3)
 
 
-def test_a_windowed_likelihood_scores_the_window_around_the_object(fitted):
+@pytest.mark.parametrize("renderer", ["mitsuba", "jax"])
+def test_a_windowed_likelihood_scores_the_window_around_the_object(fitted, renderer):
     """The window sits on the object's footprint; the windowed log likelihood and material move
-    are the full image's restricted to the window's pixels (same renders, fewer pixels scored)."""
+    are the full image's restricted to the window's pixels (same renders, fewer pixels scored),
+    with either renderer (the JAX tracer's window offset is traced: no callback, no recompilation)."""
     import jax
     import jax.numpy as jnp
     from blackjax.mcmc.random_walk import RWState
@@ -389,7 +391,7 @@ def test_a_windowed_likelihood_scores_the_window_around_the_object(fitted):
     from mitsuba_p3.infer.likelihood import score
     from mitsuba_p3.infer.model import PosteriorCore
 
-    core = PosteriorCore(fitted, LikelihoodConfig("p3", sigma=0.03, shadows=True), "mitsuba", 120, 160)
+    core = PosteriorCore(fitted, LikelihoodConfig("p3", sigma=0.03, shadows=True), renderer, 120, 160)
     image = make_renderer_image(fitted)
     top, left, height, width = core.window_for(image, (48, 64))
     rows, cols = np.nonzero(np.abs(image - core.empty).max(axis=-1) > 0.1)

@@ -99,6 +99,21 @@ def test_the_hemisphere_term_agrees_with_mitsuba(shape):
     assert figures["fraction_over_2_255"] <= 0.005, figures
 
 
+def test_a_window_renders_exactly_its_crop(pair):
+    """render_jax with a window (traced offset, static size) is that crop of the whole image, batched or not."""
+    renderer = pair["jax"]
+    params = random_object_params(np.random.default_rng(9), 3)
+    full = {k: jnp.asarray(v) for k, v in renderer.merged(params).items()}
+    whole = np.asarray(renderer.render_jax(full))
+    crop = jax.jit(lambda p, offset: renderer.render_jax(p, window=(offset, (20, 30))))
+    for top, left in ((0, 0), (7, 11)):
+        np.testing.assert_allclose(np.asarray(crop(full, jnp.array([top, left]))), whole[:, top:top + 20, left:left + 30],
+                                   atol=1e-6)
+    single = {k: (v[0] if k in params else v) for k, v in full.items()}
+    np.testing.assert_allclose(np.asarray(renderer.render_jax(single, window=(jnp.array([7, 11]), (20, 30)))),
+                               whole[0, 7:27, 11:41], atol=1e-6)
+
+
 def test_interior_mask_excludes_silhouettes():
     ids = np.zeros((7, 7), int)
     ids[2:5, 2:5] = 2

@@ -81,30 +81,42 @@ def mitsuba_render_function(renderer, bases: bool = False, window: tuple[int, in
     return render
 
 
-def jax_render_function(renderer, bases: bool = False) -> Callable:
-    """A JAX function params -> image(s) (or bases) that renders with the JAX tracer.
+def jax_render_function(renderer, bases: bool = False, window: tuple[int, int] | None = None) -> Callable:
+    """A JAX function params -> image(s) (or bases) that renders with the JAX tracer: no callback,
+    the whole likelihood stays a JAX program (on a GPU, on the device).
 
     Under ``jax.vmap`` a traced shape class would turn the tracer's ``lax.switch``
     over classes into a select that renders every class for every chain; the custom
     vmap rule instead hands the whole batch to the tracer's batched render, which
-    maps over it and renders only each set's own class.
+    renders it as the device prefers (:func:`~mitsuba_p3.render.jax_tracer.batching_for`).
+    With ``window`` (height, width) the function is ``render(params, offset)``, as
+    :func:`mitsuba_render_function`'s.
     """
     import jax
     import jax.numpy as jnp
 
-    shared = {k: jnp.asarray(v) for k, v in renderer.params.items() if k not in OBJECT_KEYS}
+    # numpy, not JAX arrays: this may be built while a sampler is being traced (a window's function is
+    # made on first use), and a JAX array made then would be that trace's tracer, leaking into the next
+    shared = {k: np.asarray(v) for k, v in renderer.params.items() if k not in OBJECT_KEYS}
 
     @jax.custom_batching.custom_vmap
-    def render(params: dict):
-        return renderer.render_jax({**shared, **params}, bases=bases)
+    def render(params: dict, offset):
+        constants = {k: jnp.asarray(v) for k, v in shared.items()}     # made in the trace that uses them
+        return renderer.render_jax({**constants, **params}, bases=bases, window=(offset, window) if window else None)
 
     @render.def_vmap
-    def render_batch(axis_size, in_batched, params):
+    def render_batch(axis_size, in_batched, params, offset):
         flags = in_batched[0]
         params = {k: v if flags[k] else jnp.broadcast_to(v, (axis_size,) + jnp.shape(v)) for k, v in params.items()}
-        return renderer.render_jax({**shared, **params}, bases=bases), True
+        if in_batched[1]:        # the offset belongs to the observation: the same for the whole batch
+            offset = offset[0]
+        constants = {k: jnp.asarray(v) for k, v in shared.items()}
+        return renderer.render_jax({**constants, **params}, bases=bases,
+                                   window=(offset, window) if window else None), True
 
-    return render
+    if window:
+        return lambda params, offset: render(params, jnp.asarray(offset, jnp.int32))
+    return lambda params: render(params, jnp.zeros(2, jnp.int32))
 
 
 class PosteriorCore:
@@ -163,10 +175,6 @@ class PosteriorCore:
         width) only that window of it is scored (its ``window`` entry is the offset the renders take)."""
         if window is None:
             return observe(observed, self.config, self.channels, self.empty, self.spectra)
-        if self.renderer_kind != "mitsuba":
-            from ..errors import MitsubaP3Error
-
-            raise MitsubaP3Error("windowed likelihoods need the mitsuba renderer")
         top, left, height, width = window
         crop = lambda image: np.asarray(image)[top:top + height, left:left + width]  # noqa: E731
         observation = observe(crop(observed), self.config, self.channels, crop(self.empty), self.spectra)
@@ -204,7 +212,8 @@ class PosteriorCore:
         size = tuple(np.shape(observation["image"])[:2])
         key = (size, bases)
         if key not in self._windowed:
-            self._windowed[key] = mitsuba_render_function(self.renderer, bases, size)
+            make = mitsuba_render_function if self.renderer_kind == "mitsuba" else jax_render_function
+            self._windowed[key] = make(self.renderer, bases, size)
         return self._windowed[key](params, observation["window"])
 
     @functools.cached_property

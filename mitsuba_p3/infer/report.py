@@ -126,7 +126,7 @@ def write_report(posterior: Posterior, fitted: FittedModel, out: str | Path, ren
     # the renders the likelihood compared: with hard shadows when its noise model had them
     noise = attrs.get("noise", "{}")
     shadows = bool((json.loads(noise) if isinstance(noise, str) else noise).get("shadows", False))
-    render = make_renderer(fitted.scene(), "mitsuba", height=height, width=width, shadows=shadows)
+    render = make_renderer(fitted.scene(), renderer, height=height, width=width, shadows=shadows)
     rng = np.random.default_rng(0)
     indices = rng.choice(len(posterior.draws("theta")), size=samples, replace=False)
     estimate_render = render.render(estimate_params(estimate))

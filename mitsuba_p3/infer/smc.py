@@ -606,7 +606,7 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
     space = hypotheses_of(core.prior, config.kinds)
     count = len(space.names)
     image = np.asarray(observation["image"])
-    scored = config.window if config.window and core.renderer_kind == "mitsuba" else image.shape[:2]
+    scored = config.window or image.shape[:2]
     check_sampler_memory(config, count, int(np.prod(scored)))
     window = None
     if start is not None:
@@ -618,7 +618,7 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
         rows, rounds = bridge(core, observation, start.rows, config, rng, key, progress), 1
         pooled = pooled_evidence(rows, count)
     else:
-        if config.window and core.renderer_kind == "mitsuba" and "window" not in observation:
+        if config.window and "window" not in observation:
             window = core.window_for(image, tuple(config.window))
             observation = core.observe(image, window) if window else observation
         rows, pooled, rounds = _rounds(core, observation, image, space, config, rng, key, progress)

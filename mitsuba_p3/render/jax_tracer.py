@@ -341,26 +341,43 @@ class JaxRenderer(Renderer):
         self._vjps: dict = {}  # jitted pullbacks, per render function
 
     # ------------------------------------------------------------------ pure JAX
-    def _trace_shape(self, shape: str, p, ids: bool = False, bases: bool = False):
-        out = trace(shape, p, self._origin, self._directions, self.floor_half_size, self.shadows, ids, bases,
-                    self.shadow_pattern)
-        return out.reshape(self.height, self.width, *(() if ids else (4, 3) if bases else (3,)))
+    def _window_rays(self, window):
+        """The camera rays (3, h*w) of a window ``((top, left), (h, w))``: the offset may be traced (one
+        compiled function serves every window of that size), the size is static. None: every pixel."""
+        if window is None:
+            return self._directions, (self.height, self.width)
+        offset, (height, width) = window
+        grid = self._directions.reshape(3, self.height, self.width)
+        top, left = offset[0], offset[1]
+        rays = jax.lax.dynamic_slice(grid, (0, top, left), (3, height, width))
+        return rays.reshape(3, height * width), (height, width)
 
-    def _trace_batch(self, p, bases: bool = False):
+    def _trace_shape(self, shape: str, p, ids: bool = False, bases: bool = False, window=None):
+        directions, (height, width) = self._window_rays(window)
+        out = trace(shape, p, self._origin, directions, self.floor_half_size, self.shadows, ids, bases,
+                    self.shadow_pattern)
+        return out.reshape(height, width, *(() if ids else (4, 3) if bases else (3,)))
+
+    def _trace_batch(self, p, bases: bool = False, window=None):
         objects = {k: p[k] for k in OBJECT_SHAPES}
         shared = {k: v for k, v in p.items() if k not in objects}
-        branches = [partial(lambda shape, obj: self._trace_shape(shape, {**shared, **obj}, bases=bases), shape)
+        branches = [partial(lambda shape, obj: self._trace_shape(shape, {**shared, **obj}, bases=bases,
+                                                                 window=window), shape)
                     for shape in SHAPES]
         one = lambda obj: jax.lax.switch(obj["kappa"], branches, obj)  # noqa: E731
         return jax.vmap(one)(objects) if self.batching == "vmap" else jax.lax.map(one, objects)
 
-    def render_jax(self, p: Mapping[str, jnp.ndarray], bases: bool = False) -> jnp.ndarray:
+    def render_jax(self, p: Mapping[str, jnp.ndarray], bases: bool = False, window=None) -> jnp.ndarray:
         """Pure JAX render of a full parameter mapping (batched or not); kappa may be traced.
 
-        With ``bases``, the material bases of :meth:`render_bases` instead of the image."""
+        With ``bases``, the material bases of :meth:`render_bases` instead of the image. With ``window``
+        ``((top, left), (height, width))`` only that window's pixels are traced (exactly that crop of
+        the whole image; the offset may be traced, the size is static), as the Mitsuba renderer's
+        :meth:`~mitsuba_p3.render.mitsuba.MitsubaRenderer.window` does."""
         if p["shift"].ndim == 2:
-            return self._trace_batch(p, bases)
-        return self._trace_batch({k: (v[None] if k in OBJECT_SHAPES else v) for k, v in p.items()}, bases)[0]
+            return self._trace_batch(p, bases, window)
+        return self._trace_batch({k: (v[None] if k in OBJECT_SHAPES else v) for k, v in p.items()}, bases,
+                                 window)[0]
 
     def render_bases(self, params: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
         """The image's material bases, (H, W, 4, 3) or (B, H, W, 4, 3): A, D, S and F.

@@ -1,0 +1,64 @@
+"""Seconds per P3 posterior, in one process, after a warm-up: what one image costs where this runs.
+
+For each particle count, the first image is sampled once to compile (not timed), then every image
+is sampled and timed; prints the machine (variant, CPU cores, GPU, JAX's backend) and, per particle
+count, the median and each image's seconds, modal shape and the island gap. ``--truth`` (a JSON
+list of {"class": {"shape": ...}}) adds the share of right shapes.
+
+    python scripts/bench_posterior.py MODEL IMAGE... [--renderer jax] [--particles 64,256] [--truth T]
+"""
+import argparse
+import json
+import statistics
+import time
+
+import numpy as np
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("model")
+    parser.add_argument("images", nargs="+")
+    parser.add_argument("--renderer", default="jax", help="jax (no callback) or mitsuba")
+    parser.add_argument("--particles", default="64", help="comma-separated SMC particles per hypothesis")
+    parser.add_argument("--truth", default=None)
+    args = parser.parse_args()
+    from mitsuba_p3.fit.model import FittedModel
+    from mitsuba_p3.images import load_observation
+    from mitsuba_p3.infer.likelihood import DEFAULT_NOISE
+    from mitsuba_p3.infer.posterior import default_likelihood, infer_image
+    from mitsuba_p3.infer.smc import SMCConfig
+    from bench_render import where
+
+    fitted = FittedModel(args.model)
+    likelihood = default_likelihood(fitted, "p3", None, DEFAULT_NOISE)
+    images = [load_observation(p) for p in args.images]
+    truth = [t["class"]["shape"] for t in json.load(open(args.truth))] if args.truth else None
+    report = {"machine": where(), "renderer": args.renderer, "noise": DEFAULT_NOISE, "images": len(images), "runs": {}}
+    for particles in (int(p) for p in args.particles.split(",")):
+        config = SMCConfig(particles=particles)
+        start = time.perf_counter()
+        try:
+            infer_image(fitted, images[0], likelihood, config, renderer=args.renderer)
+        except Exception as error:       # e.g. out of device memory: say so and go on with the next count
+            report["runs"][particles] = {"failed": f"{type(error).__name__}: {str(error)[:200]}"}
+            print(json.dumps({particles: report["runs"][particles]}), flush=True)
+            continue
+        warm = time.perf_counter() - start
+        rows = []
+        for image in images:
+            start = time.perf_counter()
+            posterior = infer_image(fitted, image, likelihood, config, renderer=args.renderer)
+            rows.append({"seconds": round(time.perf_counter() - start, 3), "shape": posterior.estimate()["shape"],
+                         "island_gap": posterior.statistic("island_gap")})
+        entry = {"first_call_seconds": round(warm, 2),
+                 "median_seconds": round(statistics.median(r["seconds"] for r in rows), 3), "per_image": rows}
+        if truth:
+            entry["shape_right"] = float(np.mean([r["shape"] == t for r, t in zip(rows, truth)]))
+        report["runs"][particles] = entry
+        print(json.dumps({particles: {k: v for k, v in entry.items() if k != "per_image"}}), flush=True)
+    print(json.dumps(report, indent=1))
+
+
+if __name__ == "__main__":
+    main()
