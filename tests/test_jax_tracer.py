@@ -219,3 +219,23 @@ def test_material_bases_rebuild_the_image(shadows):
     ids = make_renderer(scene, "jax", height=H, width=W, shadows=shadows).surface_ids(params)
     interior = np.stack([interior_mask(i, i) for i in ids])
     np.testing.assert_allclose(bases["mitsuba"][interior], bases["jax"][interior], atol=1e-3)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(jax.default_backend() != "gpu", reason="needs JAX on a GPU")
+def test_on_a_gpu_batches_are_one_vmap_launch_and_match_the_cpu_model(pair):
+    """Where JAX runs on a GPU the tracer batches with vmap by default, and its images are the
+    model's (rendered again with map batching on the same device)."""
+    import os
+
+    from mitsuba_p3.render.jax_tracer import BATCHING_ENV, JaxRenderer
+
+    renderer = JaxRenderer(pair["jax"].scene, height=pair["jax"].height, width=pair["jax"].width)
+    assert renderer.batching == "vmap"
+    params = random_object_params(np.random.default_rng(6), 16)
+    os.environ[BATCHING_ENV] = "map"
+    try:
+        mapped = JaxRenderer(pair["jax"].scene, height=renderer.height, width=renderer.width).render(params)
+    finally:
+        del os.environ[BATCHING_ENV]
+    np.testing.assert_allclose(renderer.render(params), mapped, atol=1e-5)

@@ -37,9 +37,16 @@ makes the search cheaper without changing what is estimated.
 ``window=(h, w)`` the likelihood scores only an h x w window centred on the largest
 connected part of the image's footprint (object and shadow;
 :meth:`~mitsuba_p3.infer.model.PosteriorCore.window_for`), and every render of the run
-traces only those pixels (:meth:`~mitsuba_p3.render.mitsuba.MitsubaRenderer.window`).
+traces only those pixels (:meth:`~mitsuba_p3.render.mitsuba.MitsubaRenderer.window`, or the JAX
+tracer's ``render_jax(window=...)``).
 Every hypothesis is scored on the same pixels, so their evidences stay comparable; an
 image whose footprint does not fit the window is scored whole.
+
+**One object, or nothing?** The hypotheses' evidence, weighed by their prior, is the evidence of
+"one object"; the empty floor is a model without parameters, whose evidence is its likelihood on
+the same window (:func:`object_evidence`). Their log ratio, ``log_bayes_factor_object``, is
+negative when the floor alone explains the image better: ``infer`` then warns instead of naming
+an object with confidence.
 
 **Material kind.** By default the matte/shiny decision is left inside each shape's
 run: the specular weight keeps the prior's two-component mixture, the material
