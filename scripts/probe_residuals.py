@@ -20,9 +20,14 @@ from mitsuba_p3.fit.model import FittedModel, empty_render, render_train_split
 from mitsuba_p3.fit.noise import SCORING_WINDOW, correlation_area, object_pixels, window_around
 
 
+def outline(inside: np.ndarray) -> np.ndarray:
+    """The pixels either side of a mask's boundary (H, W)."""
+    return ndimage.binary_dilation(inside) & ~ndimage.binary_erosion(inside)
+
+
 def regions(renders: np.ndarray, empty: np.ndarray, ids: np.ndarray) -> dict[str, np.ndarray]:
     obj = ids == 2
-    edge = np.stack([ndimage.binary_dilation(o) & ~ndimage.binary_erosion(o) for o in obj])
+    edge = np.stack([outline(o) for o in obj])
     changed = (np.abs(renders - empty).sum(-1) > 0.01) & ~obj & ~edge
     return {"edge": edge, "interior": obj & ~edge, "floor the object changes": changed,
             "rest of the floor": ~obj & ~edge & ~changed}

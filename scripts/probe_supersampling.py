@@ -9,11 +9,11 @@ pixel's square; the Phong renders shoot one ray through its centre.
 import argparse
 
 import numpy as np
-from scipy import ndimage
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.fit.model import FittedModel, shot_params
 from mitsuba_p3.render import make_renderer
+from probe_residuals import outline
 
 
 def main() -> None:
@@ -33,8 +33,7 @@ def main() -> None:
             params = shot_params(shot, materials)
             image = renderer.render(params).reshape(height, factor, width, factor, 3).mean(axis=(1, 3))
             squared = (image - data.image(shot)) ** 2
-            inside = base.surface_ids(params) == 2
-            edge = ndimage.binary_dilation(inside) & ~ndimage.binary_erosion(inside)
+            edge = outline(base.surface_ids(params) == 2)
             edge_sq.append(squared[edge].mean())
             total_sq.append(squared.mean())
         floor = renderer.render_empty().reshape(height, factor, width, factor, 3).mean(axis=(1, 3))

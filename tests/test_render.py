@@ -112,6 +112,15 @@ def test_soft_shadows_lie_between_lit_and_hard(scene):
     assert np.abs(wider - image).max() > 0.01
 
 
+def _mitsubas_own_render(mi, xml) -> np.ndarray:
+    """A saved scene XML rendered by mi.load_file + its phong_integrator (Embree, instances) at 120x160."""
+    mi_scene = mi.load_file(str(xml))
+    params = mi.traverse(mi_scene.sensors()[0])
+    params["film.size"] = [160, 120]
+    params.update()
+    return mi.render(mi_scene).numpy()
+
+
 def test_soft_shadows_match_mitsubas_own_integrator(mi, tmp_path):
     """The plugin (phong_integrator with light_radius, through Embree on the XML) and the renderer agree."""
     from mitsuba_p3.scene import save_scene
@@ -121,12 +130,7 @@ def test_soft_shadows_match_mitsubas_own_integrator(mi, tmp_path):
     save_scene(scene, tmp_path / "soft.xml")
     assert load_scene(tmp_path / "soft.xml").light_radius == pytest.approx(0.03)
     fast = make_renderer(scene, height=120, width=160).render()
-    mi_scene = mi.load_file(str(tmp_path / "soft.xml"))
-    params = mi.traverse(mi_scene.sensors()[0])
-    params["film.size"] = [160, 120]
-    params.update()
-    reference = mi.render(mi_scene).numpy()
-    diff = np.abs(fast - reference).max(axis=2)
+    diff = np.abs(fast - _mitsubas_own_render(mi, tmp_path / "soft.xml")).max(axis=2)
     assert (diff > 2 / 255).mean() <= 0.01, f"{(diff > 2 / 255).mean():.4%} of pixels differ"
 
 
@@ -237,12 +241,7 @@ def test_the_hemisphere_term_matches_mitsubas_own_integrator_and_vanishes_withou
     zero = make_renderer(scene, height=120, width=160).render({"sky": np.zeros(3, np.float32),
                                                                  "ground": np.zeros(3, np.float32)})
     assert np.array_equal(zero, plain)
-    mi_scene = mi.load_file(str(tmp_path / "hemi.xml"))
-    params = mi.traverse(mi_scene.sensors()[0])
-    params["film.size"] = [160, 120]
-    params.update()
-    reference = mi.render(mi_scene).numpy()
-    diff = np.abs(fast - reference).max(axis=2)
+    diff = np.abs(fast - _mitsubas_own_render(mi, tmp_path / "hemi.xml")).max(axis=2)
     assert (diff > 2 / 255).mean() <= 0.005, f"{(diff > 2 / 255).mean():.4%} of pixels differ"
 
 
