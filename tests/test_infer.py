@@ -91,7 +91,7 @@ def test_mitsuba_and_jax_give_the_same_log_likelihood(fitted, observed):
 
 
 def test_posterior_recovers_a_phong_scene(fitted, observed, tmp_path):
-    config = SamplerConfig(chains=16, steps=400, burn_in=100, tune_rounds=6, tune_steps=100, seed=0,
+    config = SamplerConfig(chains=16, steps=200, burn_in=100, tune_rounds=4, tune_steps=100, seed=0,
                            material_gibbs=True, walks_per_step=2)
     posterior = infer_image(fitted, observed, LikelihoodConfig("p3"), config)
     estimate = posterior.estimate()
@@ -706,7 +706,7 @@ def test_an_empty_floor_is_answered_as_nothing_and_an_object_as_one(fitted):
     from mitsuba_p3.render import make_renderer
 
     likelihood = LikelihoodConfig("p3", sigma=0.03, power=0.05, shadows=True)
-    config = SMCConfig(particles=8, mcmc_steps=1, final_steps=1, draws=40, islands=1)
+    config = SMCConfig(particles=4, oversample=4, mcmc_steps=1, final_steps=1, draws=40, islands=1)
     renderer = make_renderer(fitted.scene(), "mitsuba", height=120, width=160, shadows=True)
     factors = {}
     for name, image in (("empty", renderer.render_empty()), ("object", renderer.render(TRUTH))):
