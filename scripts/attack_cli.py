@@ -249,8 +249,8 @@ def attacks() -> list[Attack]:
                                                                     str(w / "data" / "sheet.png")], guarded=("data",)))
     add(Attack("fit: --out inside the data set", lambda w: ["fit", str(w / "data"), "--out",
                                                             str(w / "data" / "train" / "mymodel")], guarded=("data",)))
-    add(Attack("baseline train: --out the data set", lambda w: ["baseline", "train", str(w / "data"), "--out",
-                                                                str(w / "data"), "--iterations", "1"],
+    add(Attack("baseline train: --out the data set", lambda w: ["baseline", "train", "protonets", str(w / "data"),
+                                                                "--out", str(w / "data"), "--iterations", "1"],
                guarded=("data",)))
     add(Attack("reproduce: --out the data set", lambda w: ["reproduce", "--data", str(w), "--out", str(w / "data")],
                guarded=("data",)))
