@@ -118,18 +118,19 @@ def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str,
     estimate = posterior.estimate()
     summary = posterior.summary()
     gap = posterior.statistic("island_gap")     # SMC only: None for MH or a single run
+    factor = posterior.statistic("log_bayes_factor_object")     # SMC only: one object against the empty floor
     draws = len(posterior.draws("kappa"))
     keep = np.linspace(0, draws - 1, min(config.keep_draws, draws)).astype(int)
     samples = {f"sample_{name}": posterior.draws(name).reshape(draws, -1)[keep].astype(np.float32)
                for name in CONTINUOUS}
-    atomic_npz(Path(out), **samples, image_digest=np.array(image_digest(dataset, shot)), sample_class=posterior.draws("kappa")[keep].astype(np.int8),
+    atomic_npz(Path(out), **samples, image_digest=np.array(image_digest(shot)),
+               sample_class=posterior.draws("kappa")[keep].astype(np.int8),
                sample_shift=posterior.draws("shift")[keep].astype(np.float32),
                   shift=np.asarray(estimate["shift"], np.float64), yaw=np.float64(estimate["theta"]),
                   kappa=np.int64(estimate["kappa"]), seconds=np.float64(seconds),
                   max_r_hat=np.float64(summary["r_hat"].max()), min_ess=np.float64(summary["ess_bulk"].min()),
                   island_gap=np.float64(np.nan if gap is None else gap),
-                  log_bayes_factor_object=np.float64(np.nan if posterior.statistic("log_bayes_factor_object") is None
-                                                     else posterior.statistic("log_bayes_factor_object")),
+                  log_bayes_factor_object=np.float64(np.nan if factor is None else factor),
                   render_threads=np.int64(_render_threads()), **_evidence(posterior),
                   **(_particle_arrays(posterior.particles) if likelihood == "p3" else {}))
     return out
@@ -380,7 +381,7 @@ def check_scheduler(address: str) -> None:
                               "(dask scheduler) or drop --dask") from None
 
 
-def image_digest(dataset: Dataset, shot) -> str:
+def image_digest(shot) -> str:
     """SHA-256 of a shot's image file: a cached posterior answers for these bytes only."""
     return file_digest(shot.file)
 
@@ -413,7 +414,7 @@ def compute_posteriors(dataset: Dataset, model_dir: Path, run_dir: Path, config:
     from joblib import Parallel, delayed, parallel_config
 
     tests = dataset.split("test") if shots is None else [dataset.shots[i] for i in shots]
-    digests = {shot.index: image_digest(dataset, shot) for shot in tests}
+    digests = {shot.index: image_digest(shot) for shot in tests}
     todo = [(shot.index, likelihood) for likelihood in config.likelihoods for shot in tests
             if not _cached(posterior_path(run_dir, likelihood, shot.index), digests[shot.index])]
     total = len(tests) * len(config.likelihoods)

@@ -99,10 +99,11 @@ def jax_render_function(renderer, bases: bool = False, window: tuple[int, int] |
     # made on first use), and a JAX array made then would be that trace's tracer, leaking into the next
     shared = {k: np.asarray(v) for k, v in renderer.params.items() if k not in OBJECT_KEYS}
 
-    @jax.custom_batching.custom_vmap
-    def render(params: dict, offset):
+    def draw(params: dict, offset):
         constants = {k: jnp.asarray(v) for k, v in shared.items()}     # made in the trace that uses them
         return renderer.render_jax({**constants, **params}, bases=bases, window=(offset, window) if window else None)
+
+    render = jax.custom_batching.custom_vmap(draw)
 
     @render.def_vmap
     def render_batch(axis_size, in_batched, params, offset):
@@ -110,9 +111,7 @@ def jax_render_function(renderer, bases: bool = False, window: tuple[int, int] |
         params = {k: v if flags[k] else jnp.broadcast_to(v, (axis_size,) + jnp.shape(v)) for k, v in params.items()}
         if in_batched[1]:        # the offset belongs to the observation: the same for the whole batch
             offset = offset[0]
-        constants = {k: jnp.asarray(v) for k, v in shared.items()}
-        return renderer.render_jax({**constants, **params}, bases=bases,
-                                   window=(offset, window) if window else None), True
+        return draw(params, offset), True
 
     if window:
         return lambda params, offset: render(params, jnp.asarray(offset, jnp.int32))

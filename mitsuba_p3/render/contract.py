@@ -41,7 +41,8 @@ OBJECT_SHAPES: dict[str, tuple[int, ...]] = {
     "ambient": (), "diffuse": (), "specular": (), "shininess": (),
 }
 GLOBAL_SHAPES: dict[str, tuple[int, ...] | None] = {
-    "light_position": None, "light_intensity": None, "light_radius": (), "sky": (3,), "ground": (3,), "ambient_light": (3,),
+    "light_position": None, "light_intensity": None, "light_radius": (), "sky": (3,), "ground": (3,),
+    "ambient_light": (3,),
     "floor_colour": (3,), "floor_ambient": (), "floor_diffuse": (), "floor_specular": (),
     "floor_shininess": (), "floor_pattern": None,
 }
@@ -183,6 +184,9 @@ class Renderer:
         # construction, so a renderer made for a radius search passes shadow_samples explicitly.
         self.shadow_samples = samples_for(scene.light_radius, shadow_samples)
         self.shadow_pattern = disc_pattern(self.shadow_samples)
+        # the hemisphere term is traced only for a world that has a sky or ground (render/hemisphere.py):
+        # the paper's world pays nothing for it; fixed at construction, like the shadow samples
+        self.environment = bool(np.any(self.params["sky"] > 0) or np.any(self.params["ground"] > 0))
 
     def merged(self, params: Mapping[str, np.ndarray] | None) -> dict[str, np.ndarray]:
         """The scene's parameters overridden by ``params``, checked."""

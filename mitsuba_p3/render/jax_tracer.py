@@ -249,7 +249,7 @@ def _visibility(intersect, pose, point, normal, to_light, distance, centre, radi
 
 
 def trace(shape: str, p: Mapping[str, jnp.ndarray], origin, directions, floor_half_size: float,
-          shadows: bool, ids: bool = False, bases: bool = False, shadow_pattern=None):
+          shadows: bool, ids: bool = False, bases: bool = False, shadow_pattern=None, environment: bool = True):
     """Render one parameter set of a shape class from rays (3, N).
 
     Returns (N, 3) colours, or (N,) surface ids, or with ``bases`` the (N, 4, 3)
@@ -297,11 +297,12 @@ def trace(shape: str, p: Mapping[str, jnp.ndarray], origin, directions, floor_ha
         lit_specular = lit_specular + jnp.where(lit, visible * intensity * highlight(shininess, _dot(reflected, view)),
                                                 0.0)
     # the environment as two hemispheres (render/hemisphere.py): zero unless the world has a sky or ground
-    sky, ground = p["sky"][:, None], p["ground"][:, None]
-    lit_diffuse = lit_diffuse + hemisphere.diffuse_term(normal[2], sky, ground)
-    reflected_z = 2 * _dot(normal, view) * normal[2] - view[2]
-    lit_specular = lit_specular + hemisphere.specular_term(reflected_z, shininess, sky, ground, jnp.arcsin,
-                                                           jax.lax.erf, jnp.sqrt, jnp.clip)
+    if environment:
+        sky, ground = p["sky"][:, None], p["ground"][:, None]
+        lit_diffuse = lit_diffuse + hemisphere.diffuse_term(normal[2], sky, ground)
+        reflected_z = 2 * _dot(normal, view) * normal[2] - view[2]
+        lit_specular = lit_specular + hemisphere.specular_term(reflected_z, shininess, sky, ground, jnp.arcsin,
+                                                               jax.lax.erf, jnp.sqrt, jnp.clip)
     ambient_light = p["ambient_light"][:, None]
     result = ambient * albedo * ambient_light + diffuse * albedo * lit_diffuse + specular * lit_specular
     valid = hit_obj | hit_floor
@@ -355,7 +356,7 @@ class JaxRenderer(Renderer):
     def _trace_shape(self, shape: str, p, ids: bool = False, bases: bool = False, window=None):
         directions, (height, width) = self._window_rays(window)
         out = trace(shape, p, self._origin, directions, self.floor_half_size, self.shadows, ids, bases,
-                    self.shadow_pattern)
+                    self.shadow_pattern, self.environment)
         return out.reshape(height, width, *(() if ids else (4, 3) if bases else (3,)))
 
     def _trace_batch(self, p, bases: bool = False, window=None):

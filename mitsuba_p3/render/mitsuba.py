@@ -366,11 +366,12 @@ class MitsubaRenderer(Renderer):
             lit_diffuse += intensity * diffuse_term
             lit_specular += intensity * specular_term
         # the environment as two hemispheres (render/hemisphere.py): zero unless the world has a sky or ground
-        sky, ground = per_ray(mi.Color3f, p.sky), per_ray(mi.Color3f, p.ground)
-        lit_diffuse += hemisphere.diffuse_term(normal.z, sky, ground)
-        reflected_z = 2.0 * dr.dot(normal, view) * normal.z - view.z
-        lit_specular += hemisphere.specular_term(reflected_z, shininess, sky, ground, dr.asin, dr.erf, dr.sqrt,
-                                                 dr.clip)
+        if self.environment:
+            sky, ground = per_ray(mi.Color3f, p.sky), per_ray(mi.Color3f, p.ground)
+            lit_diffuse += hemisphere.diffuse_term(normal.z, sky, ground)
+            reflected_z = 2.0 * dr.dot(normal, view) * normal.z - view.z
+            lit_specular += hemisphere.specular_term(reflected_z, shininess, sky, ground, dr.asin, dr.erf, dr.sqrt,
+                                                     dr.clip)
         result = albedo * (ambient * ambient_light + diffuse * lit_diffuse) + specular * lit_specular
         image = dr.select(valid, dr.clip(result, 0.0, 1.0), 0.0)
         if not bases:

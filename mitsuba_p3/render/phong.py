@@ -214,6 +214,7 @@ class PhongIntegrator(mi.SamplingIntegrator):
         self.light_radius = float(props.get("light_radius", 0.0))
         self.sky = mi.Color3f(props.get("sky", 0.0))
         self.ground = mi.Color3f(props.get("ground", 0.0))
+        self.environment = bool(dr.any(self.sky > 0) | dr.any(self.ground > 0))
         from .soft_shadows import disc_pattern, samples_for
 
         self.pattern = disc_pattern(samples_for(self.light_radius))
@@ -230,14 +231,16 @@ class PhongIntegrator(mi.SamplingIntegrator):
         si = dr.select(valid & refined.is_valid(), refined, si)
         bsdf = si.bsdf(ray)
         result = bsdf.eval_attribute_3("ambient_reflectance", si, valid) * self.ambient
-        from . import hemisphere
+        if self.environment:
+            from . import hemisphere
 
-        normal, view = si.sh_frame.n, -ray.d
-        shininess = bsdf.eval_attribute_1("shininess", si, valid)
-        result += bsdf.eval_diffuse_reflectance(si, valid) * hemisphere.diffuse_term(normal.z, self.sky, self.ground)
-        result += bsdf.eval_attribute_1("specular", si, valid) * hemisphere.specular_term(
-            2.0 * dr.dot(normal, view) * normal.z - view.z, shininess, self.sky, self.ground, dr.asin, dr.erf,
-            dr.sqrt, dr.clip)
+            normal, view = si.sh_frame.n, -ray.d
+            shininess = bsdf.eval_attribute_1("shininess", si, valid)
+            result += bsdf.eval_diffuse_reflectance(si, valid) * hemisphere.diffuse_term(normal.z, self.sky,
+                                                                                         self.ground)
+            result += bsdf.eval_attribute_1("specular", si, valid) * hemisphere.specular_term(
+                2.0 * dr.dot(normal, view) * normal.z - view.z, shininess, self.sky, self.ground, dr.asin, dr.erf,
+                dr.sqrt, dr.clip)
         ctx = mi.BSDFContext()
         for position, intensity in point_lights(scene):
             to_light = position - si.p
