@@ -272,13 +272,18 @@ def trace_plot(idata, path: str | Path, variables: Sequence[str] = ("shift", "sc
     return save_figure(fig, path)
 
 
-def island_evidence(hypotheses: dict, path: str | Path) -> Path:
-    """An SMC posterior's own diagnostic: each independent run's log evidence per hypothesis (dots),
-    their pooled estimate (bar) and the posterior weight. Runs of one hypothesis that disagree by more
-    than a few nats found different poses: the answer then depends on the seed."""
+def island_evidence(hypotheses: dict, path: str | Path, steps: Sequence[dict] | None = None) -> Path:
+    """An SMC posterior's own diagnostic. Left: each independent run's log evidence per hypothesis
+    (dots), their pooled estimate (bar) and the posterior weight; runs of one hypothesis that disagree
+    by more than a few nats found different poses: the answer then depends on the seed. With the
+    run's ``steps`` (:func:`mitsuba_p3.infer.tempering.record`), two more panels per step and run:
+    the temperature lambda, and the incremental weights' ESS with each move's acceptance."""
     plt = _pyplot()
     names = list(hypotheses)
-    figure, ax = plt.subplots(figsize=(1.2 + 1.1 * len(names), 3.2))
+    panels = 3 if steps else 1
+    figure, axes = plt.subplots(1, panels, figsize=(1.2 + 1.1 * len(names) + 3.4 * (panels - 1), 3.2), squeeze=False,
+                                gridspec_kw={"width_ratios": [1.2 + 1.1 * len(names)] + [3.4] * (panels - 1)})
+    ax = axes[0][0]
     for i, name in enumerate(names):
         runs = hypotheses[name].get("island_log_evidence") or []
         ax.hlines(hypotheses[name]["log_evidence"], i - 0.3, i + 0.3, color="C0", lw=2)
@@ -290,9 +295,44 @@ def island_evidence(hypotheses: dict, path: str | Path) -> Path:
     ax.set_ylim(low, high + 0.2 * (high - low))          # room for the labels above the highest
     ax.set_xticks(range(len(names)), names, fontsize=8)
     ax.set_ylabel("log evidence (nats)")
-    ax.set_title("SMC runs per hypothesis (bar: pooled; dots: independent runs)", fontsize=8)
+    ax.set_title("runs per hypothesis (bar: pooled; dots: runs)", fontsize=8)
+    if steps:
+        _tempering_panels(axes[0][1], axes[0][2], names, steps)
     figure.tight_layout()
     return save_figure(figure, path)
+
+
+def _tempering_panels(lam_ax, ess_ax, names: list, steps: Sequence[dict]) -> None:
+    """lambda per step (one line per run, coloured by hypothesis), and the ESS share of each step's
+    incremental weights (dots) with the walk acceptance (line) averaged over the runs."""
+    runs: dict = {}
+    segment = 0           # a new tempering call (a round, or the bridge) starts where the rows change or lambda falls
+    for number, record in enumerate(steps):
+        previous = steps[number - 1] if number else record
+        if record["rows"] != previous["rows"] or any(a < b for a, b in zip(record["tempering"], previous["tempering"])):
+            segment += 1
+        for column, (row, lam) in enumerate(zip(record["rows"], record["tempering"])):
+            runs.setdefault((segment, column, row), []).append((number + 1, lam))
+    for (_, _, row), points in runs.items():
+        x, y = zip(*points)
+        lam_ax.plot(x, y, color=f"C{row}", lw=1, alpha=0.8, marker=".", ms=3)
+    for row, name in enumerate(names):
+        lam_ax.plot([], [], color=f"C{row}", label=name)
+    lam_ax.set_yscale("log")
+    lam_ax.set_xlabel("step")
+    lam_ax.set_ylabel("temperature lambda")
+    lam_ax.legend(fontsize=6)
+    lam_ax.set_title("tempering path per run", fontsize=8)
+    x = np.arange(1, len(steps) + 1)
+    ess_ax.plot(x, [np.mean(r["ess"]) for r in steps], "o", color="C0", ms=3, label="ESS share of the weights")
+    ess_ax.plot(x, [np.mean(r.get("walk_acceptance", np.nan)) for r in steps], color="C1", lw=1,
+                label="walk acceptance")
+    ess_ax.plot(x, [np.mean(r.get("material_acceptance", np.nan)) for r in steps], color="C2", lw=1,
+                label="material acceptance")
+    ess_ax.set_ylim(0, 1.05)
+    ess_ax.set_xlabel("step")
+    ess_ax.legend(fontsize=6)
+    ess_ax.set_title("ESS and acceptance (mean over runs)", fontsize=8)
 
 
 def reliability_diagram(path: str | Path, results: dict, settings: Sequence[str]) -> Path:

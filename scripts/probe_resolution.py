@@ -37,7 +37,8 @@ from mitsuba_p3.fit.model import FittedModel, empty_render, render_train_split
 from mitsuba_p3.fit.noise import SPECTRUM_FILE, fit_noise, save_spectra
 from mitsuba_p3.infer.model import PosteriorCore
 from mitsuba_p3.infer.posterior import default_likelihood
-from mitsuba_p3.infer.smc import SMCConfig, sample_smc, shape_weights
+from mitsuba_p3.infer.evidence import shape_weights
+from mitsuba_p3.infer.smc import SMCConfig, sample_smc
 
 
 def train_view(root: Path, into: Path) -> Path:

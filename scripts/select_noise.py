@@ -34,7 +34,8 @@ from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.fit.model import FittedModel
 from mitsuba_p3.infer.model import PosteriorCore
 from mitsuba_p3.infer.posterior import default_likelihood
-from mitsuba_p3.infer.smc import SMCConfig, sample_smc, shape_weights
+from mitsuba_p3.infer.evidence import shape_weights
+from mitsuba_p3.infer.smc import SMCConfig, sample_smc
 
 
 def size_class(scale: np.ndarray, sizes: dict[str, float]) -> str:

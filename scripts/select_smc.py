@@ -38,7 +38,9 @@ from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.fit.model import FittedModel
 from mitsuba_p3.infer.model import PosteriorCore
 from mitsuba_p3.infer.posterior import default_likelihood
-from mitsuba_p3.infer.smc import SMCConfig, hypotheses_of, sample_smc, shape_weights
+from mitsuba_p3.infer.evidence import shape_weights
+from mitsuba_p3.infer.hypotheses import hypotheses_of
+from mitsuba_p3.infer.smc import SMCConfig, sample_smc
 from mitsuba_p3.shapes import SHAPES
 
 

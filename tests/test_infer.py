@@ -319,13 +319,57 @@ def test_sampler_weighs_modes_correctly(fitted):
 
 # ------------------------------------------------------------------ sequential Monte Carlo
 def test_tempering_increment_keeps_the_target_ess():
-    from mitsuba_p3.infer.smc import next_increment
+    """Each row's increment (blackjax's ESS solver) keeps the target ESS; a flat likelihood goes the
+    whole remaining way at once; importance weights (an offset) count in the ESS."""
+    from mitsuba_p3.infer.tempering import increments
 
-    loglik = np.random.default_rng(0).normal(0, 50, 64)
-    step = next_increment(loglik, 1.0, 0.5)
-    w = np.exp(step * (loglik - loglik.max()))
-    assert 0 < step < 1 and w.sum() ** 2 / np.sum(w ** 2) / len(w) == pytest.approx(0.5, abs=0.01)
-    assert next_increment(np.zeros(64), 0.3, 0.5) == 0.3      # a flat likelihood: the whole way at once
+    loglik = np.random.default_rng(0).normal(0, 50, (2, 64))
+    step = increments(loglik, np.array([1.0, 1.0]), 0.5)
+    for row, d in zip(loglik, step):
+        w = np.exp(d * (row - row.max()))
+        assert 0 < d < 1 and w.sum() ** 2 / np.sum(w ** 2) / len(w) == pytest.approx(0.5, abs=0.01)
+    assert increments(np.zeros((1, 64)), np.array([0.3]), 0.5)[0] == pytest.approx(0.3)
+    offset = np.where(np.arange(64) % 2 == 0, 0.0, -3.0)[None]      # uneven importance weights
+    with_offset = increments(loglik[:1], np.array([1.0]), 0.4, offset)[0]
+    w = np.exp(with_offset * (loglik[0] - loglik[0].max()) + offset[0])
+    assert with_offset < step[0] and w.sum() ** 2 / np.sum(w ** 2) / len(w) == pytest.approx(0.4, abs=0.01)
+
+
+def test_tempering_step_reweights_resamples_moves_and_adapts():
+    """One kernel step on a conjugate toy (prior N(0, 1), likelihood N(y; z, 0.5^2)): lambda rises
+    by the ESS-chosen increment, the row's evidence by log mean of its weights, the move runs at the
+    new temperature, the walk scale adapts; stepped to lambda = 1 the evidence is the exact one."""
+    import jax
+    from scipy.stats import norm
+
+    from mitsuba_p3.infer import tempering
+
+    rng = np.random.default_rng(0)
+    y, s = 1.3, 0.5
+    z = rng.standard_normal((2, 4000, 1))
+    loglik = lambda z: norm.logpdf(y, z[..., 0], s)  # noqa: E731
+
+    def move(key, state):          # exact Gibbs draws from the tempered posterior: invariant at any lambda
+        lam = state.tempering[:, None]
+        precision = 1 + lam / s ** 2
+        draw = (lam * y / s ** 2) / precision + np.random.default_rng(int(jax.random.randint(key, (), 0, 2 ** 30)))\
+            .standard_normal(state.loglikelihood.shape) / np.sqrt(precision)
+        return state._replace(position=draw[..., None], loglikelihood=loglik(draw[..., None]),
+                              logprior=norm.logpdf(draw)), {"walk": np.array([0.25, 0.5])}
+
+    state = tempering.init(z, loglik(z), norm.logpdf(z[..., 0]))
+    new, info = tempering.step(jax.random.PRNGKey(0), state, move, 0.5)
+    assert np.all((info.tempering > 0) & (info.tempering < 1)) and np.allclose(new.tempering, info.tempering)
+    assert np.allclose(info.ess, 0.5, atol=0.01)
+    expected = np.logaddexp.reduce(info.tempering[:, None] * loglik(z), axis=1) - np.log(z.shape[1])
+    np.testing.assert_allclose(new.log_evidence, expected, rtol=1e-6)
+    np.testing.assert_allclose(new.scale, [1.0, np.exp(0.5)])
+    key = jax.random.PRNGKey(1)
+    while not np.all(new.tempering >= 1):
+        key, k = jax.random.split(key)
+        new, _ = tempering.step(k, new, move, 0.5)
+    exact = norm.logpdf(y, 0, np.sqrt(1 + s ** 2))
+    np.testing.assert_allclose(new.log_evidence, exact, atol=0.05)
 
 
 def test_footprint_of_a_noisy_image_is_the_object_not_the_noise():
@@ -415,7 +459,7 @@ def test_footprint_start_weights_average_to_one(fitted):
     import jax.numpy as jnp
 
     from mitsuba_p3.infer.model import PosteriorCore
-    from mitsuba_p3.infer.smc import footprint_start, hypotheses_of, initial_particles
+    from mitsuba_p3.infer.hypotheses import footprint_start, hypotheses_of, initial_particles
 
     core = PosteriorCore(fitted, LikelihoodConfig("p3", sigma=0.03, shadows=True), "mitsuba", 120, 160)
     observation = core.observe(make_renderer_image(fitted))
@@ -437,7 +481,7 @@ def test_island_gap_and_convergence_report_each_samplers_own_diagnostic():
     from types import SimpleNamespace
 
     from mitsuba_p3.evaluate.run import convergence
-    from mitsuba_p3.infer.smc import island_gap
+    from mitsuba_p3.infer.evidence import island_gap
 
     stats = {"hypotheses": {"sphere": {"weight": 0.9, "island_log_evidence": [100.0, 88.5]},
                             "cube": {"weight": 0.1, "island_log_evidence": [90.0, 90.1]}}}
@@ -454,19 +498,55 @@ def test_island_gap_and_convergence_report_each_samplers_own_diagnostic():
     assert convergence(smc)["unexplained_share"] == pytest.approx(1 / 3)
 
 
+def test_persistent_sampling_estimates_the_evidence_from_its_pool():
+    """Persistent sampling (the pool of every step's particles reweighted to the next temperature) on
+    the conjugate toy of the test above, eight runs: its log evidence is the exact one up to Monte Carlo
+    error (as plain SMC's), its pool's ESS can exceed N, and a pool keeps at most its capacity of steps."""
+    import jax
+    from scipy.stats import norm
+
+    from mitsuba_p3.infer import tempering
+
+    y, s = 1.3, 0.05
+    loglik = lambda z: norm.logpdf(y, z[..., 0], s)  # noqa: E731
+
+    def move(key, state):
+        lam = state.tempering[:, None]
+        precision = 1 + lam / s ** 2
+        noise = np.random.default_rng(int(jax.random.randint(key, (), 0, 2 ** 30))).standard_normal(lam.shape[:1] + (64,))
+        draw = (lam * y / s ** 2) / precision + noise / np.sqrt(precision)
+        return state._replace(position=draw[..., None], loglikelihood=loglik(draw[..., None]),
+                              logprior=norm.logpdf(draw)), {"walk": np.full(len(lam), 0.25)}
+
+    z = np.random.default_rng(0).standard_normal((8, 64, 1))
+    state, _ = tempering.step(jax.random.PRNGKey(0), tempering.init(z, loglik(z), norm.logpdf(z[..., 0])), move, 0.5)
+    pool, key, most = tempering.pool_add(None, state, 4), jax.random.PRNGKey(1), 0.0
+    while not np.all(state.tempering >= 1):
+        key, k = jax.random.split(key)
+        state, pool, info = tempering.persistent_step(k, state, pool, move, 1.0)
+        most = max(most, info.ess.max())
+        assert pool.filled <= 4 and state.position.shape == (8, 64, 1)
+    exact = norm.logpdf(y, 0, np.sqrt(1 + s ** 2))
+    assert abs(np.mean(state.log_evidence) - exact) < 0.15 and np.std(state.log_evidence) < 0.4
+    assert most > 1.0
+
+
 def test_systematic_resampling_follows_the_weights():
-    from mitsuba_p3.infer.smc import systematic_resample
+    import jax
+
+    from mitsuba_p3.infer.tempering import resample
 
     weights = np.array([0.5, 0.25, 0.125, 0.125])
-    counts = np.bincount(systematic_resample(np.random.default_rng(1), np.log(np.repeat(weights, 64))),
-                         minlength=256).reshape(4, 64).sum(axis=1)
+    chosen = resample(jax.random.PRNGKey(1), np.log(np.repeat(weights, 64))[None])[0]
+    counts = np.bincount(chosen, minlength=256).reshape(4, 64).sum(axis=1)
     np.testing.assert_allclose(counts / 256, weights, atol=1 / 256)
 
 
 def test_pooled_evidence_is_the_mean_of_each_hypothesis_runs():
     """Runs of one hypothesis pool as the log of their mean estimate (each unbiased); a hypothesis
     with no run in a round keeps the runs it had."""
-    from mitsuba_p3.infer.smc import Rows, SMCState, pooled_evidence
+    from mitsuba_p3.infer.evidence import pooled_evidence
+    from mitsuba_p3.infer.smc import Rows, SMCState
 
     rows = Rows(np.array([0, 1, 2, 0, 2]), SMCState(None, None, None), np.log([1.0, 5.0, 2.0, 3.0, 4.0]), 1, [])
     np.testing.assert_allclose(np.exp(pooled_evidence(rows, 3)), [2.0, 5.0, 3.0])
@@ -478,7 +558,8 @@ def test_decision_waits_while_the_runs_disagree_more_than_the_margin():
     cube's 42.8 and 47.7. Pooled, the cylinder has weight 1.0; but a cube run at its best (47.7) against
     the cylinder's worse run (49.7) keeps weight 0.12, so the answer is open and both stay in contention.
     Runs that agree decide; with one run per hypothesis the rule is the plain one on pooled weights."""
-    from mitsuba_p3.infer.smc import Rows, SMCState, decision, island_range, pooled_evidence
+    from mitsuba_p3.infer.evidence import decision, island_range, pooled_evidence
+    from mitsuba_p3.infer.smc import Rows, SMCState
 
     log_prior = np.log(np.full(3, 1 / 3))
     rows = Rows(np.array([0, 1, 2, 0, 1, 2]), SMCState(None, None, None),
@@ -543,14 +624,15 @@ def test_smc_runs_every_hypothesis_and_keeps_their_evidence(fitted, tmp_path, ki
 
 
 def test_bridge_from_p3_adds_the_neural_terms_evidence(fitted):
-    """The bridge from P3's particles to NP3 (:func:`mitsuba_p3.infer.smc.bridge`): with a neural weight
+    """The bridge from P3's particles to NP3 (:func:`mitsuba_p3.infer.bridge.bridge`): with a neural weight
     of zero it changes no evidence and takes one step; with the real weight and one step (a low ESS
     target), each run's log evidence grows by exactly log mean exp(neural term) over P3's final
     particles, Z_NP3 = Z_P3 E_P3[p_neural], the neural term computed here from the two likelihoods."""
     import jax
     from dataclasses import replace
 
-    from mitsuba_p3.infer.smc import SMCConfig, bridge, sample_smc
+    from mitsuba_p3.infer.bridge import bridge
+    from mitsuba_p3.infer.smc import SMCConfig, sample_smc
 
     observed = make_renderer_image(fitted)
     config = SMCConfig(particles=8, mcmc_steps=1, final_steps=1, draws=40, window=None, target_ess=1e-6)
@@ -562,7 +644,7 @@ def test_bridge_from_p3_adds_the_neural_terms_evidence(fitted):
                            for row in z])
     assert np.all(difference < 0) and np.ptp(difference) > 0          # the neural term: a distance, and it varies
     expected = start.log_evidence + np.logaddexp.reduce(difference, axis=1) - np.log(z.shape[1])
-    rows = bridge(neural.core, neural.observation, start, config, np.random.default_rng(0), jax.random.PRNGKey(0))
+    rows = bridge(neural.core, neural.observation, start, config, jax.random.PRNGKey(0))
     assert rows.temperatures == start.temperatures + 1
     np.testing.assert_allclose(rows.log_evidence, expected, rtol=0, atol=1e-3)
     # the final particles are NP3's: their log likelihoods are NP3's own
@@ -570,8 +652,7 @@ def test_bridge_from_p3_adds_the_neural_terms_evidence(fitted):
     np.testing.assert_allclose(rows.state.loglikelihood, final, rtol=1e-4, atol=1e-2)
     # no neural term: nothing to add
     off = PosteriorModel(fitted, observed, replace(np3, neural_weight=0.0))
-    unchanged = bridge(off.core, off.observation, start, replace(config, target_ess=0.5), np.random.default_rng(0),
-                       jax.random.PRNGKey(0))
+    unchanged = bridge(off.core, off.observation, start, replace(config, target_ess=0.5), jax.random.PRNGKey(0))
     assert unchanged.temperatures == start.temperatures + 1
     np.testing.assert_array_equal(unchanged.log_evidence, start.log_evidence)
 
@@ -605,8 +686,9 @@ def make_renderer_image(fitted):
 # ------------------------------------------------------------------ simulation-based calibration
 def test_sbc_ranks_are_uniform_for_an_exact_posterior_and_not_for_a_narrow_one():
     """A conjugate normal model, where exact posterior draws are known: SBC's ranks pass the uniformity
-    test; a sampler half as wide as the posterior fails it."""
-    from mitsuba_p3.evaluate.sbc import rank_of, uniformity
+    tests (chi-square, KS) and their ECDF difference stays inside the simultaneous band; a sampler half
+    as wide as the posterior fails all three."""
+    from mitsuba_p3.evaluate.sbc import SBCResult, ecdf_bands, ecdf_difference, ks_uniformity, rank_of, uniformity
 
     rng = np.random.default_rng(0)
     ranks = {"exact": [], "narrow": []}
@@ -618,6 +700,16 @@ def test_sbc_ranks_are_uniform_for_an_exact_posterior_and_not_for_a_narrow_one()
     _, p_exact = uniformity(np.array(ranks["exact"]), 49, 10)
     _, p_narrow = uniformity(np.array(ranks["narrow"]), 49, 10)
     assert np.all(p_exact > 1e-3) and np.all(p_narrow < 1e-6)
+    assert np.all(ks_uniformity(np.array(ranks["exact"]), 49) > 1e-3)
+    assert np.all(ks_uniformity(np.array(ranks["narrow"]), 49) < 1e-6)
+    z, lower, upper = ecdf_bands(400, simulations=1000)
+    assert np.all(lower < 0) and np.all(upper > 0) and np.all(upper - lower < 0.2)
+    for name, inside in (("exact", True), ("narrow", False)):
+        difference = ecdf_difference(np.array(ranks[name]), 49, z)
+        assert np.all((difference >= lower[:, None]) & (difference <= upper[:, None])) == inside
+    summary = SBCResult(np.array(ranks["narrow"])[:, [0, 1] * 4], 49, np.full((400, 3), 1 / 3),
+                        np.zeros(400, int)).summary()
+    assert not any(summary["ecdf_inside_95_band"].values()) and summary["class"]["ece"] > 0.3
 
 
 def test_sbc_runs_on_the_phong_model_and_resumes(fitted, tmp_path):

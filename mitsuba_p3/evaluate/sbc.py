@@ -15,11 +15,22 @@ posterior is the tempered one inference uses, so the check is of the sampler, no
 of the renderer's fit to real images.
 
 Checked coordinates: the position (x, y), the log half-extents (3) and the colour
-(RGB). Each gets a rank histogram and a chi-square test of uniformity over
-``bins`` equal bins (p-value; small values flag a miscalibrated sampler). The
-discrete part (the shape class) is checked by calibration: the ECE of the
-posterior probability of the most probable class, and the mean probability
-given to the true class beside the share of images where the mode is the truth.
+(RGB). Each is reported the way the field's tools print it (the ``SBC`` R package, ``sbi``'s
+``check_sbc``, ArviZ's ``plot_ecdf_pit``):
+
+- the Kolmogorov-Smirnov test of the ranks' uniformity (:func:`ks_uniformity`: the ranks made
+  continuous by a uniform jitter within their slot, which is exactly uniform on (0, 1) under a
+  calibrated sampler), and the chi-square test over ``bins`` equal bins;
+- the ECDF difference, the ranks' empirical CDF minus the uniform's, with **simultaneous** 95%
+  bands (Säilynoja, Bürkner and Vehtari 2022; :func:`ecdf_bands`): a calibrated sampler's curve
+  leaves the band somewhere in only 5% of SBC runs, where pointwise bands would be crossed by
+  chance at many points at once. A U-shaped rank histogram (too narrow) is an S below then above
+  zero; a shifted one a one-sided bulge;
+- the rank histogram.
+
+The discrete part (the shape class) is checked by calibration: the ECE of the posterior
+probability of the most probable class, its reliability bins, and the mean probability given to
+the true class beside the share of images where the mode is the truth.
 """
 from __future__ import annotations
 
@@ -55,6 +66,47 @@ def uniformity(ranks: np.ndarray, draws: int, bins: int) -> tuple[np.ndarray, np
     return counts, np.array([chisquare(counts[:, j]).pvalue for j in range(counts.shape[1])])
 
 
+def pit_values(ranks: np.ndarray, draws: int, seed: int = 0) -> np.ndarray:
+    """Ranks (n, d) in {0..L} as values in (0, 1): (rank + u) / (L + 1), u uniform; exactly uniform
+    on (0, 1) when the ranks are uniform on {0..L} (a fixed ``seed``, so a report is reproducible)."""
+    u = np.random.default_rng(seed).uniform(size=np.shape(ranks))
+    return (np.asarray(ranks) + u) / (draws + 1)
+
+
+def ks_uniformity(ranks: np.ndarray, draws: int) -> np.ndarray:
+    """Per column of ``ranks`` (n, d) the Kolmogorov-Smirnov p-value of the ranks' uniformity (d,)."""
+    from scipy.stats import kstest
+
+    values = pit_values(ranks, draws)
+    return np.array([kstest(values[:, j], "uniform").pvalue for j in range(values.shape[1])])
+
+
+def ecdf_bands(n: int, points: int = 100, level: float = 0.95, simulations: int = 4000,
+               seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Simultaneous ``level`` bands for the ECDF difference of ``n`` uniform values at ``points`` evenly
+    spaced z in (0, 1): (z, lower, upper), as differences from z. The pointwise level gamma is adjusted
+    by simulation (Säilynoja et al. 2022, their simulation method): for each of ``simulations`` uniform
+    samples, the smallest two-sided binomial tail probability of its ECDF over the z; gamma is the
+    (1 - level) quantile of those minima, and the band the binomial's gamma/2 and 1 - gamma/2 quantiles."""
+    from scipy.stats import binom
+
+    z = np.arange(1, points + 1) / (points + 1)
+    rng = np.random.default_rng(seed)
+    counts = np.stack([np.searchsorted(np.sort(rng.uniform(size=n)), z, side="right") for _ in range(simulations)])
+    tails = 2 * np.minimum(binom.cdf(counts, n, z), binom.sf(counts - 1, n, z))
+    gamma = float(np.quantile(np.minimum(tails, 1.0).min(axis=1), 1 - level))
+    lower = binom.ppf(gamma / 2, n, z) / n - z
+    upper = binom.ppf(1 - gamma / 2, n, z) / n - z
+    return z, lower, upper
+
+
+def ecdf_difference(ranks: np.ndarray, draws: int, z: np.ndarray) -> np.ndarray:
+    """(points, d): each column's ECDF of its PIT values (:func:`pit_values`) at ``z``, minus z."""
+    values = np.sort(pit_values(ranks, draws), axis=0)
+    return np.stack([np.searchsorted(values[:, j], z, side="right") / len(values) for j in range(values.shape[1])],
+                    axis=1) - z[:, None]
+
+
 @dataclass(frozen=True)
 class SBCResult:
     ranks: np.ndarray             # (n, 8) ranks of the checked coordinates
@@ -63,16 +115,25 @@ class SBCResult:
     true_class: np.ndarray        # (n,)
 
     def summary(self, bins: int = 10) -> dict:
+        """The report as JSON: per coordinate the KS and chi-square p-values, whether the ECDF difference
+        stays inside its simultaneous 95% band, the rank counts; the shape posterior's calibration."""
         counts, p_values = uniformity(self.ranks, self.draws, bins)
+        z, lower, upper = ecdf_bands(len(self.ranks))
+        difference = ecdf_difference(self.ranks, self.draws, z)
+        inside = np.all((difference >= lower[:, None] - 1e-12) & (difference <= upper[:, None] + 1e-12), axis=0)
         confidence = self.class_probabilities.max(axis=1)
         correct = self.class_probabilities.argmax(axis=1) == self.true_class
-        ece, _ = expected_calibration_error(confidence, correct)
+        ece, reliability = expected_calibration_error(confidence, correct)
         p_true = self.class_probabilities[np.arange(len(self.true_class)), self.true_class]
         return {"images": int(len(self.ranks)), "draws": self.draws, "bins": bins,
+                "rank_uniformity_ks_p": {name: float(p) for name, p in zip(CHECKED, ks_uniformity(self.ranks,
+                                                                                                   self.draws))},
                 "rank_uniformity_p": {name: float(p) for name, p in zip(CHECKED, p_values)},
+                "ecdf_inside_95_band": {name: bool(v) for name, v in zip(CHECKED, inside)},
+                "ecdf_max_excursion": {name: float(np.max(np.abs(difference[:, j]))) for j, name in enumerate(CHECKED)},
                 "rank_counts": {name: counts[:, j].tolist() for j, name in enumerate(CHECKED)},
                 "class": {"ece": ece, "accuracy": float(correct.mean()), "mean_confidence": float(confidence.mean()),
-                          "mean_p_true": float(p_true.mean())}}
+                          "mean_p_true": float(p_true.mean()), "reliability": reliability}}
 
 
 def simulate(core, rng: np.random.Generator) -> tuple[np.ndarray, dict, int]:

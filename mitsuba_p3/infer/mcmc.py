@@ -105,12 +105,11 @@ class Target(NamedTuple):
 class SamplerRun(NamedTuple):
     positions: np.ndarray         # (chains, draws, 15) unconstrained
     logdensity: np.ndarray        # (chains, draws)
-    accepted: np.ndarray | None   # (chains, draws) bool; None for SMC (its draws are resampled, not accepted)
+    accepted: np.ndarray          # (chains, draws) bool
     proposal: dict                # the final proposal: per-mode means, Cholesky factors, known flags
     tuning: list                  # per round: acceptance rates, factor, restarts, modes known
     config: dict
     statistics: dict              # acceptance rates of the kept draws' walks and jumps
-    particles: object = None      # SMC: the final particles (:class:`~mitsuba_p3.infer.smc.Particles`)
 
 
 def _transition(proposal: Proposal, mode_fn: Callable, modes: int, jump_probability: float):

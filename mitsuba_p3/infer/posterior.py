@@ -21,7 +21,7 @@ from ..space import coordinate_names
 from ..shapes import SHAPES
 from .likelihood import NOISES, LikelihoodConfig
 from .mcmc import SamplerConfig, SamplerRun, sample
-from .smc import SMCConfig, sample_smc
+from .smc import SMCConfig, SMCRun, sample_smc
 from .model import PosteriorModel
 
 SUMMARY_VARIABLES = ("shift", "theta", "scale", "colour", "ambient", "diffuse", "specular", "shininess")
@@ -105,7 +105,8 @@ class Posterior:
         return cls(az.from_netcdf(str(path)))
 
 
-def to_inference_data(model: PosteriorModel, run: SamplerRun, observed: np.ndarray, attrs: dict) -> Posterior:
+def to_inference_data(model: PosteriorModel, run: SamplerRun | SMCRun, observed: np.ndarray,
+                      attrs: dict) -> Posterior:
     """Constrained values, unconstrained draws, log-likelihoods and sampler statistics."""
     import arviz as az
     import jax
@@ -125,7 +126,7 @@ def to_inference_data(model: PosteriorModel, run: SamplerRun, observed: np.ndarr
     idata = az.from_dict(
         posterior=posterior,
         log_likelihood={"image": run.logdensity - shape(log_prior)},
-        sample_stats={"lp": run.logdensity, **({} if run.accepted is None else {"accepted": run.accepted})},
+        sample_stats={"lp": run.logdensity, **({"accepted": run.accepted} if isinstance(run, SamplerRun) else {})},
         observed_data={"image": observed},
         dims={**dims, "image": ["row", "column", "channel"]}, coords=coords,
     )
@@ -142,7 +143,7 @@ def infer_image(fitted: FittedModel, observed: np.ndarray, likelihood: Likelihoo
     """Sample the posterior over one observed image's scene: multi-chain MH (a :class:`SamplerConfig`)
     or tempered SMC over the shape x material hypotheses (an :class:`SMCConfig`). ``start``: P3's
     final particles of this image (``Posterior.particles`` of its P3 run), from which an NP3 SMC
-    run tempers the neural term in (:func:`mitsuba_p3.infer.smc.bridge`)."""
+    run tempers the neural term in (:mod:`mitsuba_p3.infer.bridge`)."""
     import time
 
     likelihood = likelihood or default_likelihood(fitted, "np3")
@@ -160,14 +161,14 @@ def infer_image(fitted: FittedModel, observed: np.ndarray, likelihood: Likelihoo
             raise InferenceError("only an SMC run can start from another run's particles")
         run = sample(model.core.target(sampler.material_gibbs), sampler, progress, observation=model.observation)
     seconds = time.perf_counter() - begin
+    # MH: its tuning rounds and the kept draws' acceptance; SMC: its statistics carry its steps
+    mh = {"tuning": run.tuning, "acceptance": float(run.accepted.mean())} if isinstance(run, SamplerRun) else \
+        {"acceptance": run.statistics.get("walk_acceptance", np.nan)}
     info = {"model": str(fitted.root), "likelihood": likelihood.kind, "sigma": likelihood.sigma,
-            "noise": asdict(likelihood),
-            "renderer": renderer, "sampler": run.config, "tuning": run.tuning,
-            "acceptance": float(run.accepted.mean() if run.accepted is not None else
-                                run.statistics.get("walk_acceptance", np.nan)), **run.statistics,
+            "noise": asdict(likelihood), "renderer": renderer, "sampler": run.config, **mh, **run.statistics,
             "seconds": seconds, **(attrs or {})}      # all of this call's (an NP3 run's includes P3's)
     posterior = to_inference_data(model, run, observed, info)
-    posterior.particles = run.particles
+    posterior.particles = run.particles if isinstance(run, SMCRun) else None
     return posterior
 
 

@@ -139,7 +139,8 @@ def write_report(posterior: Posterior, fitted: FittedModel, out: str | Path, ren
     written["figure_colour"] = str(plots.colour_posterior(posterior.draws("colour"), out / "colour.png",
                                                           truth=(truth or {}).get("colour")))
     if posterior.sampler == "smc":
-        written["figure_runs"] = str(plots.island_evidence(posterior.statistic("hypotheses"), out / "runs.png"))
+        written["figure_runs"] = str(plots.island_evidence(posterior.statistic("hypotheses"), out / "runs.png",
+                                                           posterior.statistic("steps")))
     else:
         written["figure_trace"] = str(plots.trace_plot(posterior.idata, out / "trace.png"))
     return written

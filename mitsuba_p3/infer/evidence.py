@@ -1,0 +1,73 @@
+"""What independent SMC runs say together: each hypothesis's pooled evidence, whether the answer
+is decided, and how far the runs disagree.
+
+Every run (row) of hypothesis h gives an unbiased estimate of its evidence Z_h, so the runs pool
+as the log of their mean (:func:`pooled_evidence`). Their spread is the Monte Carlo error that the
+decision between hypotheses must beat (:func:`decision`), and the spread of the leading
+hypothesis's runs, the **island gap**, is the SMC's convergence diagnostic: two runs that found
+the same posterior agree to about sqrt(T / N) nats; a run that missed the pose estimates tens of
+nats low (:func:`island_gap`).
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from ..shapes import SHAPES
+
+
+def _per_hypothesis(rows, hypotheses: int, reduce: Callable[[np.ndarray], float]) -> np.ndarray:
+    """``reduce`` of each hypothesis's rows' log evidence estimates (-inf: no row)."""
+    return np.array([reduce(mine) if len(mine := rows.log_evidence[rows.index == h]) else -np.inf
+                     for h in range(hypotheses)])
+
+
+def pooled_evidence(rows, hypotheses: int) -> np.ndarray:
+    """log Z_h per hypothesis: the log of the mean of its rows' unbiased estimates (-inf: no row)."""
+    return _per_hypothesis(rows, hypotheses, lambda mine: np.logaddexp.reduce(mine) - np.log(len(mine)))
+
+
+def island_range(rows, hypotheses: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per hypothesis the lowest and the highest log evidence any of its runs estimated (-inf: no run)."""
+    return _per_hypothesis(rows, hypotheses, np.min), _per_hypothesis(rows, hypotheses, np.max)
+
+
+def decision(log_prior: np.ndarray, pooled: np.ndarray, low: np.ndarray, high: np.ndarray,
+             threshold: float) -> tuple[bool, np.ndarray]:
+    """Is the answer decided, and which hypotheses are still in contention?
+
+    The runs of one hypothesis disagree by their Monte Carlo error (a run that missed the pose
+    estimates far too low), so the decision is checked against it: the leader (highest pooled
+    posterior weight) is decided only if it keeps weight ``threshold`` when it takes its *lowest*
+    run's estimate and every other hypothesis its *highest*. A hypothesis stays in contention if,
+    at its highest run's estimate against the others' lowest, its weight reaches (1 - threshold) / H.
+    With one run per hypothesis this is the plain rule on the pooled weights."""
+    count = len(pooled)
+    leader = int(np.argmax(log_prior + pooled))
+    worst = log_prior + np.where(np.arange(count) == leader, low, high)
+    decided = bool(np.exp(worst[leader] - np.logaddexp.reduce(worst)) >= threshold)
+    open_ = np.zeros(count, bool)
+    for h in range(count):
+        best = log_prior + np.where(np.arange(count) == h, high, low)
+        open_[h] = np.exp(best[h] - np.logaddexp.reduce(best)) >= (1.0 - threshold) / count
+    return decided, np.flatnonzero(open_)
+
+
+def shape_weights(statistics: dict) -> dict:
+    """p(shape | I) from a run's statistics: each shape's hypotheses' weights summed (with material
+    kinds as hypotheses, ``sphere/shiny`` and ``sphere/matte`` are both the sphere's)."""
+    weights = {shape: 0.0 for shape in SHAPES}
+    for name, hypothesis in statistics["hypotheses"].items():
+        weights[name.split("/")[0]] += hypothesis["weight"]
+    return weights
+
+
+def island_gap(statistics: dict) -> float | None:
+    """The spread (max - min, nats) of the leading hypothesis's runs' log evidence: how far two
+    independent SMC runs of the answer disagree. About sqrt(T / N) nats when they explored alike; tens
+    of nats when one run missed the pose the other found. None with a single run."""
+    hypotheses = statistics["hypotheses"]
+    leader = max(hypotheses, key=lambda name: hypotheses[name]["weight"])
+    runs = hypotheses[leader].get("island_log_evidence") or []
+    return float(max(runs) - min(runs)) if len(runs) > 1 else None

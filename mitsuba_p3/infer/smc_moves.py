@@ -1,0 +1,164 @@
+"""The moves of an SMC run: every particle of every row, in one batched render per move.
+
+A sweep is a Gaussian random walk over position, yaw and size (the dimensions of
+:data:`WALK_MASK`; each row's covariance 2.38^2 / d times its own particles', times the
+row's adapted ``scale``), then the symmetry move and ``ridge`` moves along the colour/weight
+ridge (neither renders); every ``material_every``-th sweep and the last end with the material
+Metropolis-within-Gibbs update (one render of the material bases; the costliest move). All
+are MH moves that leave each row's tempered target p(z | h) p(I | z)^lambda invariant.
+
+:func:`kernels` jits them once per posterior core; :func:`mover` makes the
+:data:`~mitsuba_p3.infer.tempering.Move` a tempering step calls.
+"""
+from __future__ import annotations
+
+import functools
+from typing import Callable, NamedTuple
+
+import numpy as np
+
+from ..space import DIMENSION, SLICES
+from .hypotheses import hypotheses_of, hypothesis_log_prior
+from .tempering import TemperedState
+
+# what the random walk moves: not the class (fixed by the hypothesis) nor the material (the material update's)
+WALK_MASK = np.array([0.0 if any(i in range(DIMENSION)[SLICES[name]]
+                                 for name in ("kappa", "colour", "ambient", "diffuse", "specular")) else 1.0
+                      for i in range(DIMENSION)], np.float32)
+
+
+class Kernels(NamedTuple):
+    """The jitted functions of one core's SMC (see :func:`_kernels`)."""
+    score: Callable
+    walk: Callable
+    material: Callable
+    parts: Callable
+    prior: Callable
+
+
+@functools.lru_cache(maxsize=4)
+def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int = 0) -> Kernels:
+    """Jitted kernels for one :class:`PosteriorCore`: scores of all particles, the two moves of all
+    particles at per-row temperatures, and (for the bridge) the colour and whole log likelihood of
+    all particles from one render each. Every row is one run of one hypothesis; ``index`` (R,) names
+    each row's hypothesis (a row of :func:`hypotheses_of` without islands)."""
+    import jax
+    import jax.numpy as jnp
+    from blackjax.mcmc.random_walk import RWState
+
+    log_prior = hypothesis_log_prior(core.prior, hypotheses_of(core.prior, kinds))
+    mask = jnp.asarray(walk_mask, jnp.float32)
+
+    def loglik_all(z, observation):                               # (R, N, d) -> (R, N)
+        flat = z.reshape(-1, z.shape[-1])
+        return jax.vmap(lambda p: core.log_likelihood(p, observation))(flat).reshape(z.shape[:2])
+
+    def logprior_all(z, index):
+        h = jnp.broadcast_to(index[:, None], z.shape[:2])
+        return jax.vmap(jax.vmap(log_prior))(z, h)
+
+    @jax.jit
+    def score(z, index, observation):
+        return loglik_all(z, observation), logprior_all(z, index)
+
+    @jax.jit
+    def parts(z, index, observation):
+        colour, whole = jax.vmap(lambda p: core.log_likelihood_parts(p, observation))(z.reshape(-1, z.shape[-1]))
+        return colour.reshape(z.shape[:2]), whole.reshape(z.shape[:2]), logprior_all(z, index)
+
+    @jax.jit
+    def walk(key, state, index, tempering, tril, observation):
+        """The random walk, then the symmetry move; returns (state, walk acceptance (R,))."""
+        k_walk, k_accept, k_symmetry = jax.random.split(key, 3)
+        z, loglik, logprior = state
+        noise = jax.random.normal(k_walk, z.shape) * mask
+        proposed = z + jnp.einsum("hij,hnj->hni", tril, noise)
+        new_loglik, new_logprior = loglik_all(proposed, observation), logprior_all(proposed, index)
+        log_ratio = new_logprior + tempering[:, None] * new_loglik - logprior - tempering[:, None] * loglik
+        accept = jnp.log(jax.random.uniform(k_accept, loglik.shape)) < log_ratio
+        z = jnp.where(accept[..., None], proposed, z)
+        loglik, logprior = jnp.where(accept, new_loglik, loglik), jnp.where(accept, new_logprior, logprior)
+        # symmetry: no render; the tempered density changes only through the yaw prior
+        flat = RWState(z.reshape(-1, z.shape[-1]), logprior.reshape(-1))
+        turned = jax.vmap(core.symmetry_move)(jax.random.split(k_symmetry, flat.position.shape[0]), flat)
+        if ridge:
+            # along the colour/weight ridge: no render; the density changes by the hypothesis prior's difference
+            h = jnp.repeat(index, z.shape[1])
+            for k_ridge in jax.random.split(jax.random.fold_in(k_symmetry, 1), ridge):
+                turned = jax.vmap(lambda key, state, row: core.ridge_move(key, state, lambda p: log_prior(p, row)))(
+                    jax.random.split(k_ridge, flat.position.shape[0]), turned, h)
+        return (turned.position.reshape(z.shape), loglik, turned.logdensity.reshape(logprior.shape)), \
+            accept.mean(axis=1)
+
+    @jax.jit
+    def material(key, state, index, tempering, observation):
+        """The material Metropolis-within-Gibbs update at each row's temperature (one render of
+        the material bases per particle; the result is scored from them); returns (state, each
+        row's acceptance (R,))."""
+        z, loglik, logprior = state
+        h = jnp.repeat(index, z.shape[1])
+        lam = jnp.repeat(tempering, z.shape[1])
+
+        def one(key, position, logprior_value, loglik_value, row_hypothesis, lam_value):
+            state = RWState(position, logprior_value + lam_value * loglik_value)
+            new, accepted, new_loglik = core.scored_material_move(key, state, observation, lam_value,
+                                                                  lambda p: log_prior(p, row_hypothesis))
+            return new.position, new_loglik, accepted
+
+        keys = jax.random.split(key, h.shape[0])
+        moved, new_loglik, accepted = jax.vmap(one)(keys, z.reshape(-1, z.shape[-1]), logprior.reshape(-1),
+                                                    loglik.reshape(-1), h, lam)
+        moved = moved.reshape(z.shape)
+        return (moved, new_loglik.reshape(loglik.shape), logprior_all(moved, index)), \
+            accepted.reshape(loglik.shape).mean(axis=1)
+
+    return Kernels(score, walk, material, parts, jax.jit(logprior_all))
+
+
+def kernels(core, kinds: bool, ridge: int) -> Kernels:
+    """The jitted moves of one core (cached: a core serves every image of a data set)."""
+    return _kernels(core, tuple(WALK_MASK.tolist()), kinds, ridge)
+
+
+def walk_factors(position: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Each row's walk Cholesky factor (R, d, d): 2.38 / sqrt(d) times its particles' covariance
+    over the walked dimensions, times its ``scale``."""
+    moved = WALK_MASK > 0
+    tril = np.zeros((len(position), DIMENSION, DIMENSION), np.float32)
+    for r in range(len(position)):
+        cov = np.cov(position[r][:, moved], rowvar=False) + 1e-6 * np.eye(moved.sum())
+        tril[r][np.ix_(moved, moved)] = np.linalg.cholesky(cov) * 2.38 / np.sqrt(moved.sum()) * scale[r]
+    return tril
+
+
+def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int,
+          tempering: np.ndarray | None = None, final_sweeps: int = 0, path: bool = False) -> Callable:
+    """A move for :func:`mitsuba_p3.infer.tempering.step`: ``sweeps`` sweeps of every row at its
+    temperature (or at ``tempering``), ``final_sweeps`` more once every row has reached lambda = 1,
+    returning the moved state and the mean acceptance per row of the walks and of the material
+    updates. With ``path`` the moved state keeps every sweep's particles, the start's included
+    (M particles in, (sweeps + 1) M out): waste-free SMC's move (Dau and Chopin 2022)."""
+    import jax
+    import jax.numpy as jnp
+
+    def move(key, state: TemperedState):
+        lam = jnp.asarray(state.tempering if tempering is None else tempering, jnp.float32)
+        tril = jnp.asarray(walk_factors(np.asarray(state.position), state.scale))
+        particles = tuple(jnp.asarray(a) for a in state[:3])
+        walks, materials, kept = [], [], [particles]
+        total = sweeps + (final_sweeps if np.all(state.tempering >= 1.0) else 0)
+        for i in range(total):
+            key, k_walk, k_material = jax.random.split(key, 3)
+            particles, accepted = kernels.walk(k_walk, particles, index, lam, tril, observation)
+            walks.append(accepted)
+            if (i + 1) % material_every == 0 or i == total - 1:
+                particles, accepted = kernels.material(k_material, particles, index, lam, observation)
+                materials.append(accepted)
+            kept.append(particles)
+        if path:
+            particles = tuple(jnp.concatenate([p[i] for p in kept], axis=1) for i in range(3))
+        moved = state._replace(position=np.array(particles[0]), loglikelihood=np.array(particles[1]),
+                               logprior=np.array(particles[2]))
+        return moved, {"walk": np.mean(np.asarray(walks), axis=0), "material": np.mean(np.asarray(materials), axis=0)}
+
+    return move
