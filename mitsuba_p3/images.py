@@ -39,6 +39,10 @@ def read_png(path: str | Path) -> np.ndarray:
     except (UnidentifiedImageError, OSError) as exc:
         raise ImageError(f"{path}: cannot read image ({exc})") from None
     if mode in ("I;16", "I;16B", "I;16L", "I"):
+        # mode I is 32-bit: read as 16-bit (how PIL opens some 16-bit files) only where its values fit
+        if mode == "I" and arr.size and (arr.min() < 0 or arr.max() > 65535):
+            raise ImageError(f"{path}: 32-bit integer values {int(arr.min())}..{int(arr.max())} are not an 8- or "
+                             "16-bit image's; save it as an 8- or 16-bit PNG")
         data = arr.astype(np.float32) / 65535.0
     elif arr.dtype == np.uint8:
         data = arr.astype(np.float32) / 255.0

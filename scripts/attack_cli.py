@@ -365,6 +365,49 @@ def attacks() -> list[Attack]:
                setup=make_file("badjson/labels.json", "{")))
     add(Attack("benchmark check: an empty folder", lambda w: ["benchmark", "check", str(w / "empty")],
                setup=make_dir("empty")))
+    # -- what check passed and fit or evaluate later failed on (issue "Refuse what would harm", item 4) ----------
+    def check(name: str, edit: Callable[[dict], None], setup: Callable[[Path], None] | None = None) -> Attack:
+        def argv(w: Path) -> list[str]:
+            folder = edited_labels(w, f"labels-{name}", edit)
+            if setup:
+                setup(folder)
+            return ["benchmark", "check", str(folder)]
+        return Attack(f"benchmark check: {name}", argv, tags=["check"])
+
+    def first(split: str) -> Callable[[dict], dict]:
+        return lambda l: next(i for i in l["images"] if i["split"] == split)
+
+    def rgba(folder: Path) -> None:
+        from PIL import Image
+
+        labels = json.loads((folder / "labels.json").read_text())
+        image = np.asarray(Image.open(folder / labels["images"][0]["file"]).convert("RGBA")).copy()
+        image[..., 3] = 128
+        Image.fromarray(image).save(folder / labels["images"][0]["file"])
+
+    def tiff32(folder: Path) -> None:
+        from PIL import Image
+
+        Image.fromarray(np.full((120, 160), 18_000_000, np.int32), mode="I").save(folder / "deep.tif")
+
+    def garbage_mesh(folder: Path) -> None:
+        (folder / "garbage.obj").write_text("v 0 0 0\nnot a mesh\n")
+
+    add(check("a garbage mesh file", lambda l: l["images"][0].update(mesh="garbage.obj"), garbage_mesh))
+    add(check("an image with transparency", lambda l: None, rgba))
+    add(check("a 32-bit integer TIFF", lambda l: l["images"][0].update(file="deep.tif"), tiff32))
+    add(check("rgb null", lambda l: l["images"][0]["class"].update(rgb=None, colour="mauve")))
+    add(check("rgb 5", lambda l: l["images"][0]["class"].update(rgb=5)))
+    add(check("one file as two shots", lambda l: l["images"][1].update(file=l["images"][0]["file"])))
+    add(check("a test record on a train image", lambda l: first("test")(l).update(file=first("train")(l)["file"])))
+    add(check("object_to_world 10x the scale", lambda l: [row.__setitem__(slice(0, 3), [10 * v for v in row[:3]])
+                                                         for row in l["images"][0]["pose"]["object_to_world"][:3]]))
+    add(check("a negative shot", lambda l: l["images"][0].update(shot=-3)))
+    add(check("an object below the floor", lambda l: (l["images"][0]["pose"].update(z=-0.5),
+                                                      l["images"][0]["pose"]["object_to_world"][2].__setitem__(3, -0.5))))
+    add(check("material glass", lambda l: l["images"][0]["class"].update(material="glass")))
+    add(check("size huge", lambda l: l["images"][0]["class"].update(size="huge")))
+    add(check("a yaw given as a string", lambda l: l["images"][0]["pose"].update(yaw=str(l["images"][0]["pose"]["yaw"]))))
     return out
 
 

@@ -243,6 +243,64 @@ def test_reader_reports_every_problem(tiny_fsclvr, tmp_path):
         assert needle in message
 
 
+def test_reader_refuses_labels_that_would_fail_later(tiny_fsclvr, tmp_path):
+    """What fit or evaluate would trip over, or score wrongly, is refused when the labels are read: one
+    file listed as two shots (a train/test leak when the splits differ), a negative shot, a yaw given as
+    a string, an object below the floor, an object_to_world whose scale or turn disagrees with the pose,
+    a material or size the model has no kind for."""
+    folder = _copy(tiny_fsclvr, tmp_path / "broken")
+    labels = _labels(folder)
+    images = labels["images"]
+    train = next(i for i, r in enumerate(images) if r["split"] == "train")
+    test = next(i for i, r in enumerate(images) if r["split"] == "test")
+    images[test]["file"] = images[train]["file"]                        # a test record on a train image
+    images[1]["shot"] = -1
+    images[2]["pose"]["yaw"] = str(images[2]["pose"]["yaw"])            # converted silently before
+    images[3]["pose"]["z"] = images[3]["pose"]["object_to_world"][2][3] = -0.5
+    for row in images[4]["pose"]["object_to_world"][:3]:
+        row[:3] = [10 * v for v in row[:3]]                             # ten times the half-extents
+    images[5]["pose"]["yaw"] += 1.0                                     # the matrix turns the other way
+    images[6]["class"]["material"] = "glass"
+    images[7]["class"]["size"] = "huge"
+    images[8]["class"]["rgb"] = 5                                       # a TypeError traceback before
+    _save(folder, labels)
+    with pytest.raises(DatasetError) as error:
+        load_dataset(folder)
+    message = str(error.value)
+    for needle in ("a train/test leak", "shot must be 0 or more", "expected a number, got '", "below the floor",
+                   "disagree with the half-extents", "not a turn by yaw", "material 'glass'", "size 'huge'",
+                   "three whole numbers 0-255, got 5"):
+        assert needle in message, needle
+
+
+def test_check_reads_every_image_and_mesh_as_fit_and_evaluate_do(tiny_fsclvr, tmp_path):
+    """``benchmark check`` decodes what the loaders decode: an image with transparent pixels (its header
+    is fine), a 32-bit image whose values are not 8- or 16-bit ones, and a mesh file that is not a
+    surface are reported before a long run, not by fit or evaluate minutes into it."""
+    from PIL import Image
+
+    from mitsuba_p3.benchmarks.dataset import check_contents
+
+    check_contents(load_dataset(tiny_fsclvr))                            # the generator's data set is fine
+    folder = _copy(tiny_fsclvr, tmp_path / "broken")
+    labels = _labels(folder)
+    images = labels["images"]
+    rgba = np.zeros((30, 40, 4), np.uint8)
+    rgba[..., 3] = 128
+    Image.fromarray(rgba).save(folder / images[0]["file"])
+    Image.fromarray(np.full((30, 40), 18_000_000, np.int32), mode="I").save(folder / "deep.tif")
+    images[1]["file"] = "deep.tif"
+    (folder / "garbage.obj").write_text("v 0 0 0\nthis is not a mesh\n")
+    images[2]["mesh"] = "garbage.obj"
+    _save(folder, labels)
+    dataset = load_dataset(folder)                                       # the labels themselves are fine
+    with pytest.raises(DatasetError) as error:
+        check_contents(dataset)
+    message = str(error.value)
+    assert "transparent pixels" in message and "32-bit integer values" in message
+    assert "garbage.obj cannot be read as a surface" in message
+
+
 @pytest.mark.parametrize("edit, needle", [
     (lambda folder: (folder / "labels.json").write_text("{"), "not valid JSON"),
     (lambda folder: _save(folder, {**_labels(folder), "version": 99}), "version 99"),
@@ -264,7 +322,7 @@ def test_reader_accepts_a_hand_made_folder(tmp_path):
         for shot in range(2):
             file = f"my_test/{shape}_{shot}.png"
             write_png(tmp_path / file, rng.uniform(size=(48, 64, 3)))
-            m = np.eye(4)
+            m = np.diag([0.035, 0.035, 0.035, 1.0])       # the unit shape, spanning [-1, 1], to world
             m[:3, 3] = (0.01 * c, 0.0, 0.035)
             images.append({"file": file, "split": "test", "shot": shot,
                            "class": {"shape": shape, "colour": colour, "material": "rubber",

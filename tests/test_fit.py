@@ -15,6 +15,7 @@ from mitsuba_p3.errors import MitsubaP3Error
 from mitsuba_p3.fit.features import LAYERS, IMAGENET_MEAN, IMAGENET_STD, select_channels, vgg16_weights, vgg_features
 from mitsuba_p3.fit.model import FittedModel, fit_model
 from mitsuba_p3.fit.priors import GMM, Prior, PriorConfig, fit_gmm, fit_priors
+from mitsuba_p3.shapes import object_to_world
 from mitsuba_p3.space import SLICES
 from mitsuba_p3.fit.scene_opt import SceneOptConfig, optimise_scene
 from mitsuba_p3.images import write_png
@@ -63,8 +64,8 @@ def _phong_dataset(folder, truth, materials, n_images=12, seed=0):
                   **{k: np.asarray(v, np.float32) for k, v in materials[names[i % len(names)]].items()}}
         file = f"train/c{i % len(names)}/{i}.png"
         write_png(folder / file, renderer.render(params))
-        m = np.eye(4)
-        m[:3, 3] = (x, y, h)
+        m = object_to_world((x, y), yaw, [h] * 3)
+        m[2, 3] = h
         records.append({"file": file, "split": "train", "shot": i,
                         "class": {"shape": shape, "colour": colour_name, "material": material, "size": "large",
                                   "rgb": list(COLOURS[colour_name])},

@@ -18,15 +18,19 @@ import numpy as np
 
 from ..errors import DatasetError
 from ..images import ASPECT_TOLERANCE, INFERENCE_RESOLUTION, load_image
-from ..scene import COLOURS
+from ..scene import COLOURS, SIZES
 from ..shapes import SHAPES
-from .protocol import SPLITS, ClassLabel
+from .protocol import MATERIAL_NAMES, SPLITS, ClassLabel
 
 FORMAT = "mitsuba-p3-benchmark"
 FORMAT_VERSION = 1
 LABELS_FILE = "labels.json"
 SCENE_FILE = "scene.xml"
 MAX_REPORTED = 12
+# how far a labelled pose may disagree with itself: the object_to_world matrix against x, y, z, yaw and
+# the half-extents (relative), and how far (metres) an object's lowest point may lie below the floor
+MATRIX_TOLERANCE = 0.02
+BELOW_FLOOR = 0.005
 
 
 
@@ -70,6 +74,11 @@ def _check_class(where: str, record: dict, cls: ClassLabel, problems: list[str])
     elif rgb is None and cls.colour not in COLOURS:
         problems.append(f"{where}: colour {cls.colour!r} is not one of CLEVR's ({', '.join(COLOURS)}); "
                         "give its sRGB as class.rgb, e.g. [255, 0, 255]")
+    if cls.material not in MATERIAL_NAMES:
+        problems.append(f"{where}: material {cls.material!r} is not one of {', '.join(MATERIAL_NAMES)} (the material "
+                        "kinds fit learns and evaluate scores)")
+    if cls.size not in SIZES:
+        problems.append(f"{where}: size {cls.size!r} is not one of {', '.join(SIZES)}")
     if cls.shape not in SHAPES and not record.get("mesh"):
         problems.append(f"{where}: shape {cls.shape!r} is not a primitive ({', '.join(SHAPES)}); "
                         "give the object's mesh file as \"mesh\" (its pose error needs the surface)")
@@ -149,18 +158,27 @@ def _inside(root: Path, relative) -> bool:
     return (base / relative).resolve().is_relative_to(base)
 
 
+def _number(value) -> float:
+    """A label's number: an int or float (a string, a boolean or null is refused, not converted)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise TypeError(f"expected a number, got {value!r}")
+    return float(value)
+
+
 def _check_record(i: int, record: dict, root: Path, problems: list[str]) -> Shot | None:
     where = f"images[{i}]"
     try:
         file = root / record["file"]
         split = record["split"]
-        shot = int(record["shot"])
+        if isinstance(record["shot"], bool) or not isinstance(record["shot"], int):
+            raise TypeError(f"shot must be a whole number, got {record['shot']!r}")
+        shot = record["shot"]
         cls = _class_from(record)
         pose = record["pose"]
-        position = np.array([pose["x"], pose["y"], pose["z"]], dtype=np.float64)
-        yaw = float(pose["yaw"])
-        scale = np.asarray(pose["scale"], dtype=np.float64)
-        matrix = np.asarray(pose["object_to_world"], dtype=np.float64)
+        position = np.array([_number(pose[k]) for k in ("x", "y", "z")], dtype=np.float64)
+        yaw = _number(pose["yaw"])
+        scale = np.array([_number(v) for v in pose["scale"]], dtype=np.float64)
+        matrix = np.array([[_number(v) for v in row] for row in pose["object_to_world"]], dtype=np.float64)
     except (KeyError, TypeError, ValueError) as exc:
         problems.append(f"{where}: missing or malformed field ({exc!r})")
         return None
@@ -168,13 +186,17 @@ def _check_record(i: int, record: dict, root: Path, problems: list[str]) -> Shot
     _check_class(where, record, cls, problems)
     if split not in SPLITS:
         problems.append(f"{where}: split {split!r} is not one of {SPLITS}")
+    if shot < 0:
+        problems.append(f"{where}: shot must be 0 or more, got {shot}")
     if scale.shape != (3,) or np.any(~np.isfinite(scale)) or np.any(scale <= 0):
         problems.append(f"{where}: scale must be 3 positive half-extents, got {pose['scale']}")
+    elif np.isfinite(position[2]) and position[2] - scale[2] < -BELOW_FLOOR:
+        problems.append(f"{where}: the object's lowest point z - scale z = {position[2] - scale[2]:.3f} m lies below "
+                        "the floor (z = 0)")
     if matrix.shape != (4, 4) or np.any(~np.isfinite(matrix)):
         problems.append(f"{where}: object_to_world must be a finite 4x4 matrix")
-    elif not np.allclose(matrix[:3, 3], position, atol=1e-6):
-        problems.append(f"{where}: object_to_world's translation {matrix[:3, 3].round(5).tolist()} "
-                        f"disagrees with x, y, z {position.round(5).tolist()}")
+    else:
+        _check_matrix(where, matrix, position, yaw, scale, bool(record.get("mesh")), problems)
     if not np.all(np.isfinite(position)) or not np.isfinite(yaw):
         problems.append(f"{where}: pose has non-finite values")
     if not _inside(root, record["file"]):
@@ -188,6 +210,75 @@ def _check_record(i: int, record: dict, root: Path, problems: list[str]) -> Shot
     elif mesh_path is not None and not mesh_path.is_file():
         problems.append(f"{where}: mesh {mesh} is missing")
     return Shot(i, file, split, shot, cls, position, yaw, scale, matrix, mesh_path)
+
+
+def _check_matrix(where: str, matrix: np.ndarray, position: np.ndarray, yaw: float, scale: np.ndarray, mesh: bool,
+                  problems: list[str]) -> None:
+    """object_to_world against the pose's other fields: its translation is x, y, z; its linear part a
+    turn by yaw about z times per-axis scales, which are the half-extents for a primitive (a mesh's are
+    checked against its bounding box when the mesh is read: :func:`check_contents`)."""
+    if not np.allclose(matrix[:3, 3], position, atol=1e-6):
+        problems.append(f"{where}: object_to_world's translation {matrix[:3, 3].round(5).tolist()} "
+                        f"disagrees with x, y, z {position.round(5).tolist()}")
+    norms = np.linalg.norm(matrix[:3, :3], axis=0)
+    c, s = np.cos(yaw), np.sin(yaw)
+    turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    if np.any(norms <= 0) or not np.allclose(matrix[:3, :3] / np.where(norms > 0, norms, 1.0), turn,
+                                             atol=MATRIX_TOLERANCE):
+        problems.append(f"{where}: object_to_world's rotation is not a turn by yaw = {yaw:.4f} rad about z")
+    elif not mesh and scale.shape == (3,) and np.any(np.abs(norms / scale - 1.0) > MATRIX_TOLERANCE):
+        problems.append(f"{where}: object_to_world's scales {norms.round(5).tolist()} disagree with the half-extents "
+                        f"{scale.round(5).tolist()}")
+
+
+def check_contents(dataset: "Dataset") -> None:
+    """Read every file a data set's labels name, as fit and evaluate will: each image through the
+    loader inference uses (decoded, not only its header: transparency, bit depth and range are
+    checked there), each mesh through trimesh, as the pose error reads it, its bounding box against
+    the labelled half-extents. Raises :class:`DatasetError` listing every problem, as
+    :func:`load_dataset` does; ``benchmark check`` calls it, so that "ready" means ready."""
+    from ..errors import ImageError
+    from ..pose import unit_surface_points
+
+    problems: list[str] = []
+    for shot in dataset.shots:
+        try:
+            load_image(shot.file, dataset.resolution)
+        except ImageError as exc:
+            problems.append(f"{shot.file.relative_to(dataset.root)}: {str(exc).partition(': ')[2] or exc}")
+    meshes: dict[Path, np.ndarray | None] = {}
+    for shot in dataset.shots:
+        if shot.mesh is None:
+            continue
+        where = f"{shot.file.relative_to(dataset.root)}"
+        if shot.mesh not in meshes:
+            try:
+                import trimesh
+
+                body = trimesh.load(shot.mesh, force="mesh")
+                if len(body.vertices) < 4 or len(body.faces) < 4 or not np.all(np.isfinite(body.vertices)):
+                    raise ValueError("it has no surface")
+                unit_surface_points(shot.cls.shape, str(shot.mesh))
+                meshes[shot.mesh] = (body.bounds[1] - body.bounds[0]) / 2
+            except Exception as exc:           # trimesh raises many types for a damaged file
+                meshes[shot.mesh] = None
+                problems.append(f"{where}: mesh {shot.mesh.name} cannot be read as a surface ({type(exc).__name__}: "
+                                f"{exc})")
+        bounds = meshes[shot.mesh]
+        if bounds is not None:
+            world = bounds * np.linalg.norm(shot.object_to_world[:3, :3], axis=0)
+            if np.any(np.abs(world / shot.scale - 1.0) > MATRIX_TOLERANCE):
+                problems.append(f"{where}: the mesh's half-extents in the world, {world.round(5).tolist()}, disagree "
+                                f"with the labelled scale {shot.scale.round(5).tolist()}")
+    if problems:
+        raise DatasetError(_report(dataset.root, problems))
+
+
+def _report(root: Path, problems: list[str]) -> str:
+    lines = _grouped(problems)
+    shown = "\n  ".join(lines[:MAX_REPORTED])
+    more = f"\n  ... and {len(lines) - MAX_REPORTED} more" if len(lines) > MAX_REPORTED else ""
+    return f"{root}: {len(problems)} problem(s) in the data set:\n  {shown}{more}"
 
 
 def load_dataset(root: str | Path, resolution: tuple[int, int] = INFERENCE_RESOLUTION,
@@ -224,10 +315,19 @@ def load_dataset(root: str | Path, resolution: tuple[int, int] = INFERENCE_RESOL
     rgb: dict[str, tuple] = {}
     split_of: dict[str, str] = {}
     seen: set[tuple[str, int]] = set()
+    files: dict[Path, Shot] = {}
     for shot, record in zip(shots, (records[s.index] for s in shots)):
+        # one image per shot (a path outside the folder is reported above)
+        same = files.setdefault(shot.file.resolve(), shot) if _inside(root, record["file"]) else shot
+        if same is not shot:
+            leak = " (a train/test leak)" if same.split != shot.split else ""
+            problems.append(f"{record['file']}: the same image file as {records[same.index]['file']}{leak}: each "
+                            "shot needs an image of its own")
         name = shot.class_name
-        colour = tuple(record["class"].get("rgb", ()))
-        if rgb.setdefault(name, colour) != colour:
+        rgb_label = record["class"].get("rgb")
+        colour = tuple(rgb_label) if _valid_rgb(rgb_label) else ()
+        malformed = rgb_label is not None and not colour                    # reported above, once
+        if not malformed and rgb.setdefault(name, colour) != colour:
             problems.append(f"{record['file']}: class {name} has RGB {list(colour)} here and "
                             f"{list(rgb[name])} elsewhere")
         if split_of.setdefault(name, shot.split) != shot.split:
@@ -253,8 +353,5 @@ def load_dataset(root: str | Path, resolution: tuple[int, int] = INFERENCE_RESOL
                 problems.append(f"{shot.file.relative_to(root)}: aspect {w}x{h} does not match "
                                 f"{width}x{height}")
     if problems:
-        lines = _grouped(problems)
-        shown = "\n  ".join(lines[:MAX_REPORTED])
-        more = f"\n  ... and {len(lines) - MAX_REPORTED} more" if len(lines) > MAX_REPORTED else ""
-        raise DatasetError(f"{root}: {len(problems)} problem(s) in the data set:\n  {shown}{more}")
+        raise DatasetError(_report(root, problems))
     return Dataset(root, {k: v for k, v in header.items() if k != "images"}, shots, rgb, resolution)

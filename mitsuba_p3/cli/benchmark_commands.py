@@ -48,12 +48,14 @@ def benchmark_generate(
 def benchmark_check(
     folder: Path = typer.Argument(..., help="Data-set folder."),
 ) -> None:
-    """Validate a data-set folder (every check fit and evaluate make of it) and print a summary (JSON)."""
-    from ..benchmarks.dataset import load_dataset
+    """Validate a data-set folder and print a summary (JSON): the labels (types, ranges, pose consistency,
+    duplicate files, train/test leaks), and every image and mesh read by the loaders fit and evaluate use."""
+    from ..benchmarks.dataset import check_contents, load_dataset
     from ..concepts import DistanceConfig
     from ..evaluate.metrics import setting_name, test_settings
 
     dataset = load_dataset(folder)
+    check_contents(dataset)
     train, test = dataset.classes("train"), dataset.classes("test")
     settings = [setting_name(n, k) for n, k in test_settings(dataset)]
     if not DistanceConfig.spread_shots:
