@@ -84,6 +84,44 @@ def test_sampler_auto_follows_the_noise_model():
         choose_sampler("nuts", mh, 16, "paper", None)
 
 
+def test_every_sampler_field_is_reachable_with_set_and_config(tmp_path):
+    """--set SAMPLER.FIELD=VALUE and --config FILE reach every field of both sampler configs (each field
+    set to a value other than its default, read back); unknown fields, malformed values and a setting for
+    the sampler not chosen are refused; the config's own checks still run."""
+    import dataclasses
+
+    from mitsuba_p3.cli.settings import apply_settings
+    from mitsuba_p3.errors import ConfigError
+    from mitsuba_p3.infer.mcmc import SamplerConfig
+    from mitsuba_p3.infer.smc import SMCConfig
+
+    other = {bool: lambda v: str(not v).lower(), int: lambda v: str(v + 2), float: lambda v: str(v * 0.9 if v else 0.1)}
+    for config, prefix in ((SMCConfig(), "smc"), (SamplerConfig(), "mh")):
+        for field in dataclasses.fields(config):
+            value = getattr(config, field.name)
+            if isinstance(value, tuple):
+                text, expected = "40x48", (40, 48)
+            else:
+                text = other[type(value)](value)
+                expected = type(value)(text == "true") if isinstance(value, bool) else type(value)(text)
+            changed = apply_settings(config, [f"{prefix}.{field.name}={text}"])
+            assert getattr(changed, field.name) == expected, field.name
+    (tmp_path / "settings.json").write_text('{"smc": {"islands": 3, "window": null, "persistent": true}}')
+    from_file = apply_settings(SMCConfig(), ["smc.islands=4"], tmp_path / "settings.json")
+    assert (from_file.islands, from_file.window, from_file.persistent) == (4, None, True)   # --set after the file
+    for bad, needle in ((["smc.nope=1"], "has no setting 'nope'"), (["mh.chains=3"], "the sampler is smc"),
+                        (["smc.islands=x"], "whole number"), (["islands=3"], "SAMPLER.FIELD=VALUE"),
+                        (["smc.islands=0"], ">= 1")):
+        with pytest.raises(ConfigError, match=needle):
+            apply_settings(SMCConfig(), bad)
+    from mitsuba_p3.images import write_png
+
+    write_png(tmp_path / "image.png", np.full((12, 16, 3), 0.5))
+    done = run("infer", tmp_path / "image.png", "--model", tmp_path, "-o", tmp_path / "out", "--set", "smc.nope=1")
+    assert done.returncode != 0 and len(done.stderr.strip().splitlines()) == 1 and "'nope'" in done.stderr
+    assert not (tmp_path / "out").exists()
+
+
 def test_progress_goes_to_stderr_with_plain_lines_in_a_log(capsys):
     """Written to a file, a progress bar keeps stdout clean (commands print JSON there) and stderr
     holds only plain lines: one per phase's end and, between, at most one per ``log_every`` (so an

@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Optional
+from typing import List, Optional
 
 import typer
 
@@ -14,6 +14,7 @@ from ..infer.likelihood import DEFAULT_NOISE
 from ..infer.mcmc import SamplerConfig
 from ..infer.smc import SMCConfig
 from .app import app, parse_resolution, phase_progress_bar, progress_bar, sampler_option
+from .settings import CONFIG_HELP, SET_HELP, apply_settings
 
 
 NOISE_HELP = ("Noise model: fitted (the Gaussian fitted to the model's train residuals, with hard shadows, "
@@ -100,6 +101,8 @@ def infer(
     sampler: str = typer.Option("auto", help=SAMPLER_HELP_TEXT),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
     bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge", help=BRIDGE_HELP),
+    settings: Optional[List[str]] = typer.Option(None, "--set", help=SET_HELP),
+    config_file: Optional[Path] = typer.Option(None, "--config", help=CONFIG_HELP),
     likelihood: str = typer.Option("np3", help="p3 (colour) or np3 (colour + neural)."),
     noise: str = typer.Option(DEFAULT_NOISE, help=NOISE_HELP),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
@@ -118,14 +121,14 @@ def infer(
     from ..infer.report import read_material_rule, write_report
 
     observed = load_observation(image)
+    config = apply_settings(choose_sampler(sampler, SamplerConfig(
+        chains=chains, steps=steps, burn_in=burn_in, tune_rounds=tune_rounds, tune_steps=tune_steps, seed=seed),
+        particles, noise, sigma, bridge), settings, config_file)
     # a reader's lock on the model: a fit writing it now is refused here, and no fit starts meanwhile
     with folder_lock(model, "mitsuba-p3 infer", shared=True):
         fitted = FittedModel(model)
         rules = read_material_rule(fitted, material_rule) if material_rule else None   # refused before sampling
         claim_output_folder(output, "posterior.nc", "mitsuba-p3 infer")
-        config = choose_sampler(sampler, SamplerConfig(chains=chains, steps=steps, burn_in=burn_in,
-                                                       tune_rounds=tune_rounds, tune_steps=tune_steps, seed=seed),
-                                particles, noise, sigma, bridge)
         bar, track = phase_progress_bar("sampling")
 
         with bar:
@@ -157,6 +160,8 @@ def evaluate(
     sampler: str = typer.Option("auto", help=SAMPLER_HELP_TEXT),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
     bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge", help=BRIDGE_HELP),
+    settings: Optional[List[str]] = typer.Option(None, "--set", help=SET_HELP),
+    config_file: Optional[Path] = typer.Option(None, "--config", help=CONFIG_HELP),
     noise: str = typer.Option(DEFAULT_NOISE, help=NOISE_HELP + f" {DEFAULT_NOISE}, chosen on train classes "
                                                   "(docs/notebook.md); paper reproduces the paper's rows."),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
@@ -182,9 +187,10 @@ def evaluate(
                               jobs=jobs,
                               dask=dask, distance=DistanceConfig(properties=parse_properties(distance),
                                                                  spread_shots=spread_shots, direction=kl),
-                              sampler=choose_sampler(sampler, SamplerConfig(
+                              sampler=apply_settings(choose_sampler(sampler, SamplerConfig(
                                   chains=chains, steps=steps, burn_in=burn_in, tune_rounds=tune_rounds,
-                                  tune_steps=tune_steps, seed=seed), particles, noise, sigma, bridge))
+                                  tune_steps=tune_steps, seed=seed), particles, noise, sigma, bridge),
+                                  settings, config_file))
     bar, track = phase_progress_bar("posteriors")
 
     with bar:
@@ -215,6 +221,8 @@ def reproduce(
         "multi-chain Metropolis-Hastings", "the evaluation preset")),
     particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
     bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge", help=BRIDGE_HELP),
+    settings: Optional[List[str]] = typer.Option(None, "--set", help=SET_HELP),
+    config_file: Optional[Path] = typer.Option(None, "--config", help=CONFIG_HELP),
     noise: str = typer.Option(DEFAULT_NOISE, help=NOISE_HELP + " Runs go to runs/V-NOISE (e.g. runs/V-sandwich), "
                                                   "runs/V (paper)."),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma; runs go to "
@@ -243,9 +251,9 @@ def reproduce(
         typer.echo((out / "accuracy.md").read_text() + "\n" + (out / "adi.md").read_text())
         return
 
-    sampler = choose_sampler(sampler_name, replace(PRESET, chains=chains, steps=steps, burn_in=burn_in,
-                                                   tune_rounds=tune_rounds, tune_steps=tune_steps), particles,
-                             noise, sigma, bridge)
+    sampler = apply_settings(choose_sampler(sampler_name, replace(PRESET, chains=chains, steps=steps, burn_in=burn_in,
+                                                                  tune_rounds=tune_rounds, tune_steps=tune_steps),
+                                            particles, noise, sigma, bridge), settings, config_file)
     evaluation = EvaluationConfig(likelihoods=tuple(k.strip() for k in likelihoods.split(",") if k.strip()),
                                   sigma=sigma, noise=noise, sampler=sampler, episodes=episodes, jobs=jobs,
                                   distance=DistanceConfig(properties=parse_properties(distance),
