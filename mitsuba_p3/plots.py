@@ -331,7 +331,7 @@ def _tempering_panels(lam_ax, ess_ax, names: list, steps: Sequence[dict]) -> Non
                 label="material acceptance")
     ess_ax.set_ylim(0, 1.05)
     ess_ax.set_xlabel("step")
-    ess_ax.legend(fontsize=6)
+    ess_ax.legend(fontsize=6, loc="center left", framealpha=0.6)
     ess_ax.set_title("ESS and acceptance (mean over runs)", fontsize=8)
 
 

@@ -193,6 +193,14 @@ def test_a_run_with_tuple_settings_resumes(bench, tmp_path):
     check_run(tmp_path, dataset, bench / "model", config)
     with pytest.raises(EvaluationError, match="other settings"):
         check_run(tmp_path, dataset, bench / "model", replace(config, sampler=SMCConfig(particles=4, window=(56, 72))))
+    # a record written before a sampler setting existed (persistent sampling here) was at its default: it resumes
+    record = json.loads((tmp_path / "run.json").read_text())
+    del record["sampler"]["persistent"], record["sampler"]["waste_free"]
+    (tmp_path / "run.json").write_text(json.dumps(record))
+    check_run(tmp_path, dataset, bench / "model", config)
+    with pytest.raises(EvaluationError, match="other settings"):
+        check_run(tmp_path, dataset, bench / "model", replace(config, sampler=SMCConfig(particles=4, window=(48, 64),
+                                                                                        persistent=True)))
 
 
 def test_the_bridge_setting_guards_only_np3_posteriors(bench, tmp_path):

@@ -328,6 +328,9 @@ def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: Evaluati
                                       f"{'' if moved else ', changed since'}); use another --out folder or remove it")
         if isinstance(previous.get("sampler"), dict) and "particles" in previous["sampler"]:
             previous["sampler"].setdefault("bridge", False)     # an SMC record from before the bridge
+        if isinstance(previous.get("sampler"), dict):
+            # a setting added to the sampler after the record was written was, at its default, not in play
+            previous["sampler"] = {**_sampler_defaults(previous["sampler"]), **previous["sampler"]}
         if _np3_start_changed(previous, record):
             # the bridge decides how NP3's posteriors were made, and nothing of P3's
             if "np3" not in config.likelihoods:
@@ -345,6 +348,17 @@ def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: Evaluati
                                   "use another --out folder or remove it")
         return
     atomic_json(path, record)
+
+
+def _sampler_defaults(sampler: dict) -> dict:
+    """Every field of the sampler config a run record's sampler is (SMC if it has particles), at its
+    default, as run.json holds it."""
+    from dataclasses import asdict
+
+    from ..infer.mcmc import SamplerConfig
+    from ..infer.smc import SMCConfig
+
+    return json.loads(json.dumps(asdict(SMCConfig() if "particles" in sampler else SamplerConfig())))
 
 
 def _bridge(record: dict):
