@@ -99,14 +99,35 @@ def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] 
     folder = data / variant
     generate(variant, folder, resolution=resolution,
              progress=(lambda d, t: progress(f"{variant}: generate", d, t)) if progress else None)
-    fitted_on = "fsclvr" if variant == "ood" else variant
-    model = data / "models" / fitted_on
+    source = fitted_on(variant)
+    model = data / "models" / source
     if not (model / "model.json").exists():
-        if fitted_on != variant:
-            generate(fitted_on, data / fitted_on, resolution=resolution)
-        fit_model(data / fitted_on, model,
-                  progress=(lambda stage, d, t, _: progress(f"{fitted_on}: fit {stage}", d, t)) if progress else None)
+        if source != variant:
+            generate(source, data / source, resolution=resolution)
+        fit_model(data / source, model,
+                  progress=(lambda stage, d, t, _: progress(f"{source}: fit {stage}", d, t)) if progress else None)
     return folder, model
+
+
+def fitted_on(variant: str) -> str:
+    """The benchmark whose train classes a benchmark's model (and frozen baseline) is fitted on: its own, or
+    fsclvr's for ood, which has none."""
+    return "fsclvr" if variant == "ood" else variant
+
+
+def frozen_baselines(folder: Path, train_folder: Path, run_dir: Path, episodes: int, track=None) -> None:
+    """Score the frozen-feature baselines (:mod:`mitsuba_p3.baselines.frozen`: no training, about a minute)
+    on the run's episodes, once (kept when their files are there); skipped for a benchmark with too few
+    train classes to choose their layer on."""
+    from .baselines.frozen import METHODS, MIN_TRAIN_CLASSES, score_benchmark
+    from .benchmarks.dataset import load_dataset
+
+    if all((run_dir / "baselines" / f"frozen-{m}.json").is_file() for m in METHODS):
+        return
+    if len(load_dataset(train_folder).classes("train")) < MIN_TRAIN_CLASSES:
+        return
+    score_benchmark(folder, run_dir, None if train_folder == folder else train_folder, episodes,
+                    progress=(lambda d, t: track("frozen baselines", d, t)) if track else None)
 
 
 def machine() -> dict:
@@ -145,6 +166,7 @@ def reproduce(data: str | Path, out: str | Path, config: ReproduceConfig | None 
             sample_spread(data / "fsclvr", model, spread_from, evaluation, track)
         run_dir = out / "runs" / run_name(variant, noise)
         evaluate(folder, model, run_dir, evaluation, progress=track, spread_from=spread_from)
+        frozen_baselines(folder, data / fitted_on(variant), run_dir, evaluation.episodes, track)
         minutes[variant] = (time.perf_counter() - start) / 60
         start = time.perf_counter()
         posterior_figure(folder, model, run_dir, evaluation, out / "figures" / posterior_figure_name(variant, noise))

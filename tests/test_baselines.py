@@ -248,3 +248,75 @@ def test_the_vgg_weights_reader_resolves_arrays_only(tmp_path):
     with pytest.raises(FitError, match="not an array"):
         ArraysOnlyUnpickler(io.BytesIO(pickle.dumps(_RunsCode(tmp_path / "pwned")))).load()
     assert not (tmp_path / "pwned").exists()
+
+
+# ------------------------------------------------------------------ frozen pretrained features
+def test_frozen_classifiers_on_features_whose_classes_are_known():
+    """CL2N then nearest centroid or a logistic regression: queries near their class's support are
+    given to it; the train mean is what centring removes (a shared offset no longer decides)."""
+    from mitsuba_p3.baselines.frozen import normalised, predict_centroid, predict_probe
+
+    rng = np.random.default_rng(0)
+    centres = rng.normal(size=(5, 32))
+    offset = 50.0 * rng.normal(size=32)                      # a large shared component (the train mean)
+    support = offset + np.repeat(centres, 2, axis=0) + 0.1 * rng.normal(size=(10, 32))
+    labels = np.repeat(np.arange(5), 2)
+    queries = offset + centres + 0.1 * rng.normal(size=(5, 32))
+    s, q = normalised(support, offset), normalised(queries, offset)
+    np.testing.assert_allclose(np.linalg.norm(s, axis=1), 1.0, rtol=1e-6)
+    assert list(np.argmax(predict_centroid(s, labels, q, 5), axis=1)) == list(range(5))
+    probabilities = predict_probe(s, labels, q, 5, c=10.0)
+    assert probabilities.shape == (5, 5) and list(np.argmax(probabilities, axis=1)) == list(range(5))
+    # without centring, the shared offset makes every vector alike: the cosine can no longer tell the classes
+    raw = normalised(support, np.zeros(32)) @ normalised(queries, np.zeros(32)).T
+    assert raw.min() > 0.99
+
+
+def test_frozen_baseline_chooses_on_held_out_train_classes_and_scores_the_shared_episodes(tmp_path):
+    """On a small benchmark: the layer (and the probe's C) come from validation episodes of held-out
+    train classes, and the test scores land in RUN/baselines as rows the tables read, on the
+    episodes P3 is scored on; fewer than 6 train classes to hold 2 out of is refused in one line."""
+    from mitsuba_p3.baselines.frozen import C_TRIED, LAYERS_TRIED, score_benchmark
+    from mitsuba_p3.evaluate.tables import load_baselines
+
+    few = _colour_benchmark(tmp_path / "few", train_classes=8)
+    with pytest.raises(BaselineError, match="at least 15 train classes; this one has 8"):
+        score_benchmark(few, tmp_path / "run", episodes=3)
+    _colour_benchmark(tmp_path / "data", train_classes=15)
+    results = score_benchmark(tmp_path / "data", tmp_path / "run", episodes=3)
+    rows = load_baselines(tmp_path / "run")
+    assert [r["model"] for r in rows] == ["VGG16 frozen + centroid", "VGG16 frozen + linear probe"] == \
+        [r["model"] for r in results]
+    for row in rows:
+        assert row["frozen"]["layer"] in LAYERS_TRIED and 0 <= row["frozen"]["validation_accuracy"] <= 1
+        assert (row["frozen"]["c"] in C_TRIED) == (row["frozen"]["method"] == "probe")
+        assert set(row["accuracy"]) == {"5-way 1-shot"} and row["accuracy"]["5-way 1-shot"]["episodes"] == 3
+
+
+def _colour_benchmark(folder, train_classes: int, test_classes: int = 5, shots: int = 3):
+    """A data set in the project's format whose classes are plain colours (noisy 30x40 images): a
+    benchmark in seconds for the baselines' plumbing."""
+    import json
+
+    from mitsuba_p3.images import write_png
+    from mitsuba_p3.scene import COLOURS
+    from mitsuba_p3.shapes import object_to_world
+
+    rng = np.random.default_rng(0)
+    records, kinds = [], [(c, m, s) for c in COLOURS for m in ("rubber", "metal") for s in ("small", "large")]
+    for number, (colour, material, size) in enumerate(kinds[:train_classes + test_classes]):
+        split = "train" if number < train_classes else "test"
+        for shot in range(shots):
+            file = f"{split}/{colour}-{material}-{size}/{shot}.png"
+            rgb = np.array(COLOURS[colour]) / 255.0 * (0.6 if material == "metal" else 1.0) * (0.8 if size == "small"
+                                                                                             else 1.0)
+            write_png(folder / file, np.clip(rgb + 0.05 * rng.normal(size=(30, 40, 3)), 0, 1))
+            m = object_to_world((0.0, 0.0), 0.0, [0.035] * 3)
+            m[2, 3] = 0.035
+            records.append({"file": file, "split": split, "shot": shot,
+                            "class": {"shape": "cube", "colour": colour, "material": material, "size": size},
+                            "pose": {"x": 0.0, "y": 0.0, "z": 0.035, "yaw": 0.0, "scale": [0.035] * 3,
+                                     "object_to_world": m.tolist()}})
+    (folder / "labels.json").write_text(json.dumps({"format": "mitsuba-p3-benchmark", "version": 1,
+                                                    "images": records}))
+    return folder

@@ -68,6 +68,29 @@ def baseline_evaluate(
                           indent=2))
 
 
+@baseline_app.command("frozen")
+def baseline_frozen(
+    dataset: Path = typer.Argument(..., help="Benchmark folder; its test episodes are scored."),
+    out: Path = typer.Option(..., "--out", help="Evaluation run folder (results go to baselines/frozen-*.json)."),
+    choose_on: Optional[Path] = typer.Option(None, help="Benchmark whose train classes choose the layer, the probe's "
+                                                        "C and the centring mean (default: DATASET's own; ood has "
+                                                        "none: give fsclvr's)."),
+    episodes: int = typer.Option(100, help="Episodes per N-way K-shot setting (same as evaluate)."),
+) -> None:
+    """Frozen pretrained VGG16 features, classified by nearest centroid and by a linear probe: chosen
+    on held-out train classes, scored on the same test episodes as P3/NP3 (no training)."""
+    from ..baselines.frozen import score_benchmark
+    from ..files import refuse_protected_folder
+
+    refuse_protected_folder(out, "mitsuba-p3 baseline frozen")
+    bar, update = progress_bar("episodes")
+    with bar:
+        results = score_benchmark(dataset, out, choose_on, episodes, progress=update)
+    typer.echo(json.dumps({r["model"]: {"layer": r["frozen"]["layer"], "C": r["frozen"]["c"],
+                                        **{k: round(100 * v["mean"], 1) for k, v in r["accuracy"].items()}}
+                           for r in results}, indent=2))
+
+
 @baseline_app.command("status")
 def baseline_status(
     trained: list[Path] = typer.Argument(..., help="Training folders, or folders of them (e.g. results/baselines)."),
