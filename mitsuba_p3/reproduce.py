@@ -296,6 +296,33 @@ def posterior_figure(folder: Path, model: Path, run_dir: Path, evaluation: Evalu
     return figure
 
 
+def run_identity(run: Path) -> tuple[str, float | str | None] | None:
+    """(benchmark, sigma) of a run folder, as :func:`run_name` names it, from what its ``run.json`` says
+    it is (the benchmark; the noise model or the paper's sigma), not from the folder's name; a record
+    from before it named the benchmark takes it from the data set's labels, then from the name. A folder
+    without a record (results copied without it) is read by its name; None: not a run."""
+    record_path = run / "run.json"
+    if not record_path.is_file():
+        return parse_run_name(run.name)
+    try:
+        record = json.loads(record_path.read_text())
+    except ValueError:
+        return None
+    if not isinstance(record, dict) or record.get("format") != "mitsuba-p3-evaluation":
+        return None
+    benchmark = record.get("benchmark")
+    if benchmark is None:
+        labels = Path(str(record.get("dataset", ""))) / "labels.json"
+        try:
+            benchmark = json.loads(labels.read_text()).get("variant")
+        except (OSError, ValueError):
+            benchmark = (parse_run_name(run.name) or (None,))[0]
+    if benchmark not in COLUMNS:
+        return None
+    sigma, noise = record.get("sigma"), record.get("noise", "paper")
+    return benchmark, sigma if sigma is not None else (None if noise == "paper" else noise)
+
+
 def collect(out: Path) -> dict:
     """Every evaluated run under ``out/runs``: {(benchmark, sigma, distance): {likelihood: result}}, where
     distance is None for the default distance and e.g. ``colour+class`` for tables in ``runs/V/distance-colour+class``
@@ -303,7 +330,7 @@ def collect(out: Path) -> dict:
     paper's KL direction)."""
     found = {}
     for run in sorted((out / "runs").glob("*/")):
-        key = parse_run_name(run.name)
+        key = run_identity(run)
         if key is None:
             continue
         tables = [run / "results.json"] + [path for folder in ("distance-*", "spread*", "kl-*")

@@ -101,6 +101,27 @@ def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_
     assert "P3 (sigma 0.1) mean ADI" in adi and "colour" not in adi  # ADI does not depend on the distance
 
 
+def test_a_run_is_found_by_its_record_not_its_name(tmp_path):
+    """A run folder renamed (or named by hand) is tabulated as what its run.json says it is: the
+    benchmark and the noise model; a record before the benchmark was kept takes it from the data set's
+    labels; a folder whose record is not an evaluation's is not a run."""
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "labels.json").write_text(json.dumps({"variant": "dark"}))
+    for name, record, accuracy in (
+            ("my-room-try", {"benchmark": "room", "noise": "fitted", "sigma": None}, 0.7),
+            ("old-record", {"dataset": str(tmp_path / "data"), "noise": "paper", "sigma": 0.35}, 0.6),
+            ("fsclvr", {"benchmark": "fsclvr", "noise": "paper", "sigma": None}, 0.5)):
+        (tmp_path / "runs" / name).mkdir(parents=True)
+        (tmp_path / "runs" / name / "run.json").write_text(json.dumps({"format": "mitsuba-p3-evaluation", **record}))
+        (tmp_path / "runs" / name / "results.json").write_text(json.dumps({"results": {"p3": result(accuracy, 0.01)}}))
+    (tmp_path / "runs" / "room-fitted").mkdir()
+    (tmp_path / "runs" / "room-fitted" / "run.json").write_text(json.dumps({"format": "something else"}))
+    (tmp_path / "runs" / "room-fitted" / "results.json").write_text(json.dumps({"results": {"p3": result(0.1, 0.01)}}))
+    found = tables.collect(tmp_path)
+    assert {k: v["p3"]["accuracy"]["5-way 1-shot"]["mean"] for k, v in found.items()} == {
+        ("room", "fitted", None): 0.7, ("dark", 0.35, None): 0.6, ("fsclvr", None, None): 0.5}
+
+
 def test_tables_only_rewrites_the_tables_from_run_folders_and_refuses_a_folder_without_runs(tmp_path):
     """``reproduce --tables-only``: the tables of a results folder copied without its posteriors, a baseline
     scored since included; nothing to tabulate is one error line."""

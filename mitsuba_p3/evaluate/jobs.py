@@ -301,7 +301,8 @@ def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: Evaluati
     """Create RUN/run.json, or refuse a folder whose cached posteriors were made with other settings or
     from another data set or model. A run that died before caching its first posterior holds nothing
     to protect: its record is replaced, so the corrected command simply starts again."""
-    record = {"format": RUN_FORMAT, "version": 1, "dataset": str(Path(dataset.root).resolve()),
+    record = {"format": RUN_FORMAT, "version": 1, "benchmark": dataset.variant,
+              "dataset": str(Path(dataset.root).resolve()),
               "model": str(Path(model_dir).resolve()), **config.cache_key(),
               # the files' contents too: a model fitted again, or labels rewritten, in the same folder
               "model_digest": file_digest(Path(model_dir) / "model.json"),
@@ -341,7 +342,7 @@ def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: Evaluati
             raise EvaluationError(f"{run_dir} holds NP3 posteriors made with the SMC's bridge "
                                   f"{'on' if _bridge(previous) else 'off'}; pass --bridge/--no-bridge to match, "
                                   f"or remove {run_dir / 'posteriors' / 'np3'} to sample them again")
-        changed = [k for k in record if k not in ("dataset", "model", "model_digest", "labels_digest")
+        changed = [k for k in record if k not in ("benchmark", "dataset", "model", "model_digest", "labels_digest")
                    and previous.get(k) != record[k]]
         if changed:
             raise EvaluationError(f"{run_dir} holds an evaluation with other settings ({', '.join(changed)}); "
@@ -372,7 +373,7 @@ def _np3_start_changed(previous: dict, record: dict) -> bool:
     if _bridge(previous) is None or _bridge(record) is None or _bridge(previous) == _bridge(record):
         return False
     strip = lambda r: {**r, "sampler": {k: v for k, v in r["sampler"].items() if k != "bridge"}}  # noqa: E731
-    ignored = ("dataset", "model", "model_digest", "labels_digest")
+    ignored = ("benchmark", "dataset", "model", "model_digest", "labels_digest")
     return all(strip(previous).get(k) == strip(record)[k] for k in record if k not in ignored)
 
 
