@@ -6,6 +6,9 @@ row's adapted ``scale``), then the symmetry move and ``ridge`` moves along the c
 ridge (neither renders); every ``material_every``-th sweep and the last end with the material
 Metropolis-within-Gibbs update (one render of the material bases; the costliest move). All
 are MH moves that leave each row's tempered target p(z | h) p(I | z)^lambda invariant.
+Why five walks per material update, and why the ridge moves (the colour/weight ridge the
+material update crawls along), was measured on train images: ``docs/notebook.md``, "The SMC
+spends its renders on walks" and "A move along the colour/weight ridge".
 
 :func:`kernels` jits them once per posterior core; :func:`mover` makes the
 :data:`~mitsuba_p3.infer.tempering.Move` a tempering step calls.
