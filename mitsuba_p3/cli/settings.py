@@ -105,7 +105,8 @@ def apply_settings(config, settings: list[str] | None = None, config_file: Path 
         if not sep or not dot or prefix not in PREFIXES:
             raise ConfigError(f"--set takes SAMPLER.FIELD=VALUE with SAMPLER smc or mh; got {setting!r}")
         if prefix != chosen:
-            raise ConfigError(f"--set {setting}: the sampler is {chosen}, not {prefix} (choose it with --sampler {prefix})")
+            raise ConfigError(f"--set {setting}: the sampler is {chosen}, not {prefix} "
+                              f"(choose it with --sampler {prefix})")
         if name not in types:
             raise unknown(name)
         changes[name] = _parse(key, text.strip(), types[name])

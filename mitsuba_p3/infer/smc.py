@@ -82,7 +82,8 @@ class SMCConfig:
     islands: int = 2               # independent SMC runs per hypothesis and round, their evidence pooled
     rounds: int = 1                # rounds of runs; a round after the first runs only the contenders
     decided: float = 0.99          # no further round once the leader has this weight, even at its worst run's estimate
-    window: tuple | None = SCORING_WINDOW  # score only a (height, width) window around the footprint (None: whole image)
+    # score only a (height, width) window around the footprint (None: the whole image)
+    window: tuple | None = SCORING_WINDOW
     target_ess: float = 0.5        # of the incremental weights, as a share of the particles
     max_temperatures: int = 100    # a run that needs more jumps to lambda = 1 (statistics: 'forced')
     draws: int = 400               # posterior draws returned (resampled from the mixture)

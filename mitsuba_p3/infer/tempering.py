@@ -257,11 +257,12 @@ def persistent_reweight(key, state: TemperedState, pool: Pool, target_ess: float
     rows, slots, n = pool.loglikelihood.shape
     ll = np.where(np.isfinite(pool.loglikelihood), pool.loglikelihood, -1e30).astype(np.float32)
     # padded slots after `filled` hold zeros, as blackjax's padded state does; one slot more for the candidate
-    pad = lambda a, value=0.0: np.concatenate([a, np.full(a.shape[:1] + (1,) + a.shape[2:], value, a.dtype)], 1)  # noqa: E731
+    pad = lambda a: np.concatenate([a, np.zeros(a.shape[:1] + (1,) + a.shape[2:], a.dtype)], 1)  # noqa: E731
     ll, log_z, schedule = pad(ll), pad(pool.log_evidence.astype(np.float32)), pad(pool.tempering.astype(np.float32))
     remaining = 1.0 - state.tempering
-    step = remaining if force else np.asarray(solve(ll, log_z, schedule, pool.filled, state.tempering.astype(np.float32),
-                                                    remaining.astype(np.float32), np.float32(target_ess * n)), float)
+    step = remaining if force else np.asarray(solve(ll, log_z, schedule, pool.filled,
+                                                    state.tempering.astype(np.float32), remaining.astype(np.float32),
+                                                    np.float32(target_ess * n)), float)
     step = np.where(remaining > 0, np.clip(step, MIN_INCREMENT, remaining), 0.0)
     if shared:
         step = np.full_like(step, step.min())
