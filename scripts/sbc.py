@@ -123,7 +123,9 @@ def main() -> None:
     summary = {"model": args.model, "noise": args.noise, "likelihood_sigma": likelihood.sigma, **result.summary()}
     atomic_json(args.out / "sbc.json", summary)
     plot_report(summary, result, args.out / "sbc.png")
-    print(json.dumps({k: v for k, v in summary.items() if k != "rank_counts"}, indent=2))
+    shown = {k: v for k, v in summary.items() if k != "rank_counts"}
+    shown["class"] = {k: v for k, v in summary["class"].items() if k != "reliability"}
+    print(json.dumps(shown, indent=2))
 
 
 if __name__ == "__main__":
