@@ -56,8 +56,11 @@ class Attack:
 
 
 def digest(path: Path) -> str:
+    """A file's or a folder's contents; a folder's ``.lock`` (the advisory lock a command takes, holding
+    its pid: not the user's data, and ignored as such by the commands themselves) does not count."""
     if path.is_dir():
-        return hashlib.sha256("".join(digest(p) for p in sorted(path.rglob("*")) if p.is_file()).encode()).hexdigest()
+        return hashlib.sha256("".join(digest(p) for p in sorted(path.rglob("*"))
+                                      if p.is_file() and p.name != ".lock").encode()).hexdigest()
     return hashlib.sha256(path.read_bytes()).hexdigest() if path.exists() else "missing"
 
 
