@@ -279,7 +279,10 @@ def test_a_model_or_data_set_changed_in_place_is_noticed(bench, tmp_path):
 
 
 def test_sigma_reaches_the_cached_posteriors(bench, tmp_path):
-    """A smaller colour sigma sharpens the likelihood, so the same image's colour posterior narrows."""
+    """A smaller colour sigma sharpens the likelihood, so the same image's colour posterior narrows. (With
+    4 short chains the spread at sigma 0.05 bottoms out at the chains' own dispersion, 0.03-0.05 against
+    0.08-0.10 at sigma 1 from machine to machine: the bound leaves room for that, and a sigma that did not
+    reach the posteriors, ratio about 1, still fails.)"""
     dataset = load_dataset(bench / "data")
     shot = dataset.split("test")[0].index
     spreads = {}
@@ -288,7 +291,7 @@ def test_sigma_reaches_the_cached_posteriors(bench, tmp_path):
         compute_posteriors(dataset, bench / "model", tmp_path / f"s{sigma}", config, shots=[shot])
         with np.load(posterior_path(tmp_path / f"s{sigma}", "p3", shot)) as f:
             spreads[sigma] = f["sample_colour"].std(axis=0).mean()
-    assert spreads[0.05] < 0.5 * spreads[1.0]
+    assert spreads[0.05] < 0.75 * spreads[1.0]
 
 
 def test_cli_refuses_a_bad_sigma(bench, tmp_path):
