@@ -93,12 +93,13 @@ class Choice:
 
 
 def _accuracy(method: str, c: float | None, tasks: list, mean: np.ndarray) -> float:
+    """Mean query accuracy of a method over feature-space episodes, features centred on ``mean``."""
     scores = []
     for support, labels, queries, truth, n_way in tasks:
         s, q = normalised(support, mean), normalised(queries, mean)
-        scores.append(predict_centroid(s, labels, q, n_way) if method == "centroid"
-                      else predict_probe(s, labels, q, n_way, c))
-        scores[-1] = float(np.mean(np.argmax(scores[-1], axis=1) == truth))
+        predicted = predict_centroid(s, labels, q, n_way) if method == "centroid" else \
+            predict_probe(s, labels, q, n_way, c)
+        scores.append(float(np.mean(np.argmax(predicted, axis=1) == truth)))
     return float(np.mean(scores))
 
 
@@ -106,12 +107,11 @@ def choose(train: dict[str, np.ndarray], chosen_on: str, validation_classes: int
            seed: int = 0) -> tuple[dict[str, Choice], dict[str, np.ndarray]]:
     """Per method the layer (and C) with the best accuracy on validation episodes of held-out train
     classes (the same draws for every candidate); returns the choices and each layer's centring mean
-    (over all train images)."""
+    (over all train images; while choosing, over the classes not held out)."""
+    from ..evaluate.metrics import feasible_settings
     from .train import split_validation, validation_tasks
 
-    from ..evaluate.metrics import feasible_settings
-
-    _, held = split_validation(train, validation_classes, seed)
+    kept, held = split_validation(train, validation_classes, seed)
     if not held or not feasible_settings(len(held), min(len(v) for v in held.values()) - 1):
         from ..errors import BaselineError
 
@@ -123,11 +123,12 @@ def choose(train: dict[str, np.ndarray], chosen_on: str, validation_classes: int
     for layer in LAYERS_TRIED:
         by_class = features(train, layer)
         means[layer] = np.concatenate(list(by_class.values())).mean(axis=0)
+        centre = np.concatenate([by_class[name] for name in kept]).mean(axis=0)   # nothing of the held-out classes
         # the validation episodes drawn over the held-out classes' features: the same draws for every layer
         tasks = validation_tasks({name: by_class[name] for name in held}, episodes, seed)
         for method in METHODS:
             for c in (C_TRIED if method == "probe" else (None,)):
-                accuracy = _accuracy(method, c, tasks, means[layer])
+                accuracy = _accuracy(method, c, tasks, centre)
                 if method not in best or accuracy > best[method].validation_accuracy:
                     best[method] = Choice(method, layer, c, accuracy, chosen_on)
     return best, means
