@@ -148,7 +148,7 @@ def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int
         lam = jnp.asarray(state.tempering if tempering is None else tempering, jnp.float32)
         tril = jnp.asarray(walk_factors(np.asarray(state.position), state.scale))
         particles = tuple(jnp.asarray(a) for a in state[:3])
-        walks, materials, kept = [], [], [particles]
+        walks, materials, kept = [], [], [particles] if path else []   # waste-free keeps every sweep's states
         total = sweeps + (final_sweeps if np.all(state.tempering >= 1.0) else 0)
         for i in range(total):
             key, k_walk, k_material = jax.random.split(key, 3)
@@ -157,7 +157,8 @@ def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int
             if (i + 1) % material_every == 0 or i == total - 1:
                 particles, accepted = kernels.material(k_material, particles, index, lam, observation)
                 materials.append(accepted)
-            kept.append(particles)
+            if path:
+                kept.append(particles)
         if path:
             particles = tuple(jnp.concatenate([p[i] for p in kept], axis=1) for i in range(3))
         moved = state._replace(position=np.array(particles[0]), loglikelihood=np.array(particles[1]),
