@@ -12,7 +12,10 @@ posterior-mean shift, the SMC's temperatures, and seconds per image.
 
     python scripts/select_noise.py --dataset data/fsclvr --model data/models/fsclvr [--images 30]
         [--forms fitted,robust,spectral] [--particles 32] [--islands 1] [--out rows.jsonl]
-        [--shrink 0,1,3 --copies DIR]
+        [--shrink 0,1,3 --copies DIR] [--models phong=data/models/fsclvr,ggx=data/models/fsclvr-ggx]
+
+``--models`` compares fitted models (e.g. two observation models, ``fit --observation``) on the
+same images: each model is scored under each form, and rows are named ``MODEL/FORM``.
 
 ``--shrink`` adds one spectral form per lambda (the spectrum's shrinkage towards white noise,
 :mod:`mitsuba_p3.fit.noise`): the model's noise stage is fitted again with that lambda into a
@@ -83,6 +86,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, help="JSON-lines file of per-image rows (appended; resumes)")
     parser.add_argument("--shrink", default="", help="lambdas of spectral forms fitted again (comma-separated)")
     parser.add_argument("--copies", type=Path, default=Path("out/select-noise-models"))
+    parser.add_argument("--models", default="", help="NAME=MODEL_DIR pairs to compare (comma-separated); "
+                                                     "default: --model alone")
     args = parser.parse_args()
     done = {}
     if args.out and args.out.is_file():
@@ -102,19 +107,25 @@ def main() -> None:
     config = SMCConfig(particles=args.particles, islands=args.islands)
     report = {"dataset": args.dataset, "images": len(shots),
               "smc": {"particles": config.particles, "islands": config.islands}}
-    models = {form: fitted for form in [f.strip() for f in args.forms.split(",") if f.strip()]}
+    forms = [f.strip() for f in args.forms.split(",") if f.strip()]
+    models = {form: fitted for form in forms}
+    if args.models:
+        pairs = [item.split("=", 1) for item in args.models.split(",") if item.strip()]
+        models = {f"{name}/{form}": FittedModel(path) for name, path in pairs for form in forms}
     for value in [v.strip() for v in args.shrink.split(",") if v.strip()]:
         models[f"spectral-{value}"] = shrunk_model(args.model, dataset, float(value), args.copies / f"shrink-{value}")
-    for form, model in models.items():
-        core = None
-        rows = []
-        for i, shot in enumerate(shots):
+    # images outside, forms inside: a run stopped early compares the forms on the same images
+    cores, rows = {}, {form: [] for form in models}
+    for i, shot in enumerate(shots):
+        for form, model in models.items():
             if (form, shot.index) in done:
-                rows.append(done[form, shot.index])
+                rows[form].append(done[form, shot.index])
                 continue
-            if core is None:
-                core = PosteriorCore(model, default_likelihood(model, "p3", noise=form.split("-")[0]), "mitsuba",
-                                     *dataset.resolution)
+            if form not in cores:
+                noise = form.split("/")[-1].split("-")[0]
+                cores[form] = PosteriorCore(model, default_likelihood(model, "p3", noise=noise), "mitsuba",
+                                            *dataset.resolution)
+            core = cores[form]
             start = time.perf_counter()
             run = sample_smc(core, core.observe(dataset.image(shot)), config)
             seconds = time.perf_counter() - start
@@ -132,22 +143,23 @@ def main() -> None:
                                            > 0.5) == (shot.cls.material == "metal")),
                    "temperatures": int(run.statistics["temperatures"]), "forced": run.statistics["forced"],
                    "seconds": seconds}
-            rows.append(row)
+            rows[form].append(row)
             if args.out:
                 with open(args.out, "a") as f:
                     f.write(json.dumps(row) + "\n")
             print(f"{form} {i + 1}/{len(shots)} {shot.class_name}: shape {'ok' if row['shape_right'] else 'WRONG'} "
                   f"size {'ok' if row['size_right'] else 'WRONG'} {row['position_error_mm']:.1f} mm "
                   f"T={row['temperatures']} {seconds:.1f} s", flush=True)
-        report[form] = {"shape": float(np.mean([r["shape_right"] for r in rows])),
-                        "size": float(np.mean([r["size_right"] for r in rows])),
-                        "mean_log_p_true_shape": float(np.mean([r["log_p_true_shape"] for r in rows])),
-                        "material_kind_p_shiny": float(np.mean([r["material_right"] for r in rows
+    for form, done_rows in rows.items():
+        report[form] = {"shape": float(np.mean([r["shape_right"] for r in done_rows])),
+                        "size": float(np.mean([r["size_right"] for r in done_rows])),
+                        "mean_log_p_true_shape": float(np.mean([r["log_p_true_shape"] for r in done_rows])),
+                        "material_kind_p_shiny": float(np.mean([r["material_right"] for r in done_rows
                                                                 if "material_right" in r] or [np.nan])),
-                        "mean_position_error_mm": float(np.mean([r["position_error_mm"] for r in rows])),
-                        "median_temperatures": float(np.median([r["temperatures"] for r in rows])),
-                        "forced": float(np.mean([r["forced"] for r in rows])),
-                        "seconds_per_image": float(np.median([r["seconds"] for r in rows]))}
+                        "mean_position_error_mm": float(np.mean([r["position_error_mm"] for r in done_rows])),
+                        "median_temperatures": float(np.median([r["temperatures"] for r in done_rows])),
+                        "forced": float(np.mean([r["forced"] for r in done_rows])),
+                        "seconds_per_image": float(np.median([r["seconds"] for r in done_rows]))}
     print(json.dumps(report, indent=2))
 
 

@@ -37,9 +37,28 @@ def _loss(renderer, params, cotangent) -> float:
     return float(np.sum(renderer.render(params).astype(np.float64) * cotangent))
 
 
-@pytest.mark.parametrize("key", DIFFERENTIABLE_KEYS)
-def test_gradient_matches_central_differences(setup, key):
-    renderer, cotangent, rng = setup
+@pytest.fixture(scope="module")
+def setup_ggx():
+    """The same world with the GGX microfacet lobe (render/lobes.py; no hemisphere term there)."""
+    from mitsuba_p3.scene import load_scene
+
+    from .conftest import SCENES
+
+    scene = load_scene(SCENES / "room.xml", {"shape": "sphere", "specular": "0.3", "shininess": "12",
+                                             "scale": "0.06, 0.05, 0.05"}).replace(lobe="ggx")
+    scene.floor.material.specular = 0.2
+    scene.floor.material.shininess = 6.0
+    rng = np.random.default_rng(1)
+    return make_renderer(scene, height=H, width=W), rng.normal(size=(H, W, 3)).astype(np.float32), rng
+
+
+GGX_KEYS = ("colour", "specular", "shininess", "light_position", "light_intensity", "floor_specular",
+            "floor_shininess")
+
+
+@pytest.mark.parametrize("lobe, key", [("phong", k) for k in DIFFERENTIABLE_KEYS] + [("ggx", k) for k in GGX_KEYS])
+def test_gradient_matches_central_differences(request, lobe, key):
+    renderer, cotangent, rng = request.getfixturevalue("setup" if lobe == "phong" else "setup_ggx")
     base = renderer.params
     grads = renderer.vjp(None, cotangent)
     assert set(grads) >= set(DIFFERENTIABLE_KEYS)

@@ -124,6 +124,25 @@ def test_interior_mask_excludes_silhouettes():
     assert not interior_mask(ids, other)[3, 3]
 
 
+@pytest.mark.parametrize("shape", ["sphere", "cube", "cylinder"])
+def test_the_ggx_lobe_agrees_with_mitsuba(shape):
+    """The GGX microfacet lobe (render/lobes.py): one formula in both renderers (>= 40 dB), on a shiny object."""
+    rng = np.random.default_rng(9)
+    scene = load_scene(SCENES / "room.xml", {"shape": shape}).replace(shadows=True, lobe="ggx")
+    params = {k: v[0] for k, v in random_object_params(rng, 1).items()}
+    params.update(kappa=np.int32(["sphere", "cube", "cylinder"].index(shape)), specular=np.float32(0.5),
+                  shininess=np.float32(30.0))
+    images, ids = [], []
+    for kind in ("mitsuba", "jax"):
+        renderer = make_renderer(scene, kind, height=120, width=160)
+        images.append(renderer.render(params))
+        ids.append(renderer.surface_ids(params))
+    assert (ids[0] == 2).sum() > 20, "the object must be in view for the check to mean anything"
+    figures = agreement(images[0], images[1], ids[0], ids[1])
+    assert figures["psnr_interior_db"] >= 40, figures
+    assert figures["fraction_over_2_255"] <= 0.005, figures
+
+
 @pytest.fixture(scope="module")
 def pair():
     scene = load_scene(SCENES / "room.xml", {"specular": "0.5", "shininess": "10", "scale": "0.05"})

@@ -61,8 +61,9 @@ def fit(
     channels: int = typer.Option(3, help="VGG16 channels to select."),
     shadows: bool = typer.Option(True, "--shadows/--no-shadows", help="Hard shadows while fitting."),
     observation: str = typer.Option("phong", help="Observation model: phong (point lights and a constant ambient "
-                                                  "term, the paper's) or hemisphere (also a fitted sky and ground "
-                                                  "that light and are mirrored by every surface)."),
+                                                  "term, the paper's), hemisphere (also a fitted sky and ground "
+                                                  "that light and are mirrored by every surface) or microfacet (the "
+                                                  "GGX microfacet lobe in place of Phong's highlight)."),
     light_radius: float = typer.Option(0.0, help="Widen every light into a disc of this radius (metres): soft "
                                                  "shadows, in the fit and in every render of the model (0: point "
                                                  "lights, the paper's)."),

@@ -101,7 +101,8 @@ class FittedModel:
 
     def scene(self):
         """The fitted Phong :class:`~mitsuba_p3.scene.Scene`."""
-        return SceneFit(self.globals, self.materials, [], 0.0, {}, {}).scene()
+        config = self.info.get("stages", {}).get("scene", {}).get("config", {})
+        return SceneFit(self.globals, self.materials, [], 0.0, {}, config).scene()
 
     @property
     def channels(self) -> list[Channel]:

@@ -13,8 +13,10 @@ learning rate of 0.01 can move it between rubber (~4) and metal (~40) within
 the schedule; every other parameter is optimised directly and projected back
 to its valid range after each step.
 
-Two options beyond the paper, both off by default: ``observation="hemisphere"`` also fits the
-environment's sky and ground radiance with the globals (:mod:`mitsuba_p3.render.hemisphere`), and
+Three options beyond the paper, all off by default: ``observation="hemisphere"`` also fits the
+environment's sky and ground radiance with the globals (:mod:`mitsuba_p3.render.hemisphere`),
+``observation="microfacet"`` gives every surface the GGX microfacet lobe in place of Phong's highlight
+(:mod:`mitsuba_p3.render.lobes`; the same parameters, so the rest of the pipeline is unchanged), and
 ``light_radius`` widens every light into a disc for soft shadows (fixed, not fitted: visibility has
 no gradient; :mod:`mitsuba_p3.render.soft_shadows`).
 """
@@ -28,6 +30,7 @@ import numpy as np
 from ..benchmarks.dataset import Dataset
 from ..errors import ConfigError, FitError, check_counts, check_positive
 from ..scene import Camera, Floor, PhongMaterial, PointLight, Scene, SceneObject
+from ..render.lobes import OBSERVATION_LOBES
 from ..shapes import shape_index
 
 MATERIAL_KEYS = ("colour", "ambient", "diffuse", "specular", "shininess")
@@ -35,7 +38,7 @@ GLOBAL_KEYS = ("light_position", "light_intensity", "floor_colour", "floor_ambie
                "floor_pattern")
 # the environment's two hemispheres, fitted with the globals under the hemisphere observation model
 HEMISPHERE_KEYS = ("sky", "ground")
-OBSERVATIONS = ("phong", "hemisphere")
+OBSERVATIONS = ("phong", "hemisphere", "microfacet")
 # where the sky and ground start (radiance, display units): a dim grey environment
 INITIAL_HEMISPHERE = 0.05
 
@@ -150,7 +153,8 @@ class SceneFit:
                                         PhongMaterial.named("gray", "rubber")),
                      light_radius=float(g.get("light_radius", 0.0)),
                      sky=np.asarray(g.get("sky", np.zeros(3)), np.float64),
-                     ground=np.asarray(g.get("ground", np.zeros(3)), np.float64))
+                     ground=np.asarray(g.get("ground", np.zeros(3)), np.float64),
+                     lobe=OBSERVATION_LOBES[self.config.get("observation", "phong")])
 
 
 def initial_globals(config: SceneOptConfig) -> dict[str, np.ndarray]:
@@ -208,7 +212,7 @@ def optimise_scene(dataset: Dataset, config: SceneOptConfig | None = None,
     materials = {}
     for shot in shots:
         materials.setdefault(material_key(shot), initial_material(shot, config))
-    scene = SceneFit(globals_, {}, [], 0.0, {}, {}).scene()
+    scene = SceneFit(globals_, {}, [], 0.0, {}, asdict(config)).scene()
     renderer = make_renderer(scene, "mitsuba", height=height, width=width, shadows=config.shadows)
 
     targets = [mi.Float(dataset.image(shot).reshape(-1)) for shot in shots]

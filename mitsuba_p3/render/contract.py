@@ -187,6 +187,7 @@ class Renderer:
         # the hemisphere term is traced only for a world that has a sky or ground (render/hemisphere.py):
         # the paper's world pays nothing for it; fixed at construction, like the shadow samples
         self.environment = bool(np.any(self.params["sky"] > 0) or np.any(self.params["ground"] > 0))
+        self.lobe = scene.lobe  # the specular lobe (render/lobes.py), fixed at construction
 
     def merged(self, params: Mapping[str, np.ndarray] | None) -> dict[str, np.ndarray]:
         """The scene's parameters overridden by ``params``, checked."""

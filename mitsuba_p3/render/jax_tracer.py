@@ -35,6 +35,7 @@ import numpy as np
 from ..scene import Camera, Scene
 from ..shapes import SHAPES
 from . import hemisphere
+from .lobes import ggx_term
 from .contract import OBJECT_SHAPES, Renderer, is_batched, unbatch
 
 BATCHINGS = ("map", "vmap")
@@ -249,7 +250,8 @@ def _visibility(intersect, pose, point, normal, to_light, distance, centre, radi
 
 
 def trace(shape: str, p: Mapping[str, jnp.ndarray], origin, directions, floor_half_size: float,
-          shadows: bool, ids: bool = False, bases: bool = False, shadow_pattern=None, environment: bool = True):
+          shadows: bool, ids: bool = False, bases: bool = False, shadow_pattern=None, environment: bool = True,
+          lobe: str = "phong"):
     """Render one parameter set of a shape class from rays (3, N).
 
     Returns (N, 3) colours, or (N,) surface ids, or with ``bases`` the (N, 4, 3)
@@ -294,8 +296,14 @@ def trace(shape: str, p: Mapping[str, jnp.ndarray], origin, directions, floor_ha
                 p["light_radius"], shadow_pattern))
         intensity = p["light_intensity"][k][:, None]
         lit_diffuse = lit_diffuse + jnp.where(lit, visible * intensity * cos_light, 0.0)
-        lit_specular = lit_specular + jnp.where(lit, visible * intensity * highlight(shininess, _dot(reflected, view)),
-                                                0.0)
+        if lobe == "ggx":
+            half = l + view
+            half = half / jnp.sqrt(jnp.maximum(_dot(half, half), 1e-12))
+            specular_term = ggx_term(shininess, jnp.maximum(cos_light, 0.0), jnp.maximum(_dot(normal, view), 0.0),
+                                     _dot(normal, half), jnp.sqrt)
+        else:
+            specular_term = highlight(shininess, _dot(reflected, view))
+        lit_specular = lit_specular + jnp.where(lit, visible * intensity * specular_term, 0.0)
     # the environment as two hemispheres (render/hemisphere.py): zero unless the world has a sky or ground
     if environment:
         sky, ground = p["sky"][:, None], p["ground"][:, None]
@@ -356,7 +364,7 @@ class JaxRenderer(Renderer):
     def _trace_shape(self, shape: str, p, ids: bool = False, bases: bool = False, window=None):
         directions, (height, width) = self._window_rays(window)
         out = trace(shape, p, self._origin, directions, self.floor_half_size, self.shadows, ids, bases,
-                    self.shadow_pattern, self.environment)
+                    self.shadow_pattern, self.environment, self.lobe)
         return out.reshape(height, width, *(() if ids else (4, 3) if bases else (3,)))
 
     def _trace_batch(self, p, bases: bool = False, window=None):

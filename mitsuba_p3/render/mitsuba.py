@@ -32,6 +32,8 @@ import drjit as dr  # noqa: E402  (after the backend has chosen libLLVM)
 
 from .drjit_params import DrParams, gradients_of, to_drjit, to_drjit_pattern  # noqa: E402
 from . import hemisphere  # noqa: E402
+from .lobes import ggx_term  # noqa: E402
+from .phong import half_vector  # noqa: E402
 from .phong import SHADOW_OFFSET, phong_terms, pixel_centre_rays  # noqa: E402
 
 _BACKEND = jit_backend()  # renders open a fresh scope of the chosen variant's backend
@@ -344,7 +346,8 @@ class MitsubaRenderer(Renderer):
                               per_ray(mi.Float, p.floor_shininess))
 
         # The Phong sum as two light sums, D = sum I_l [n.l > 0] n.l and
-        # S = sum I_l [n.l > 0] max(0, r.v)^alpha: the image is k_a c A + k_d c D + k_s S.
+        # S = sum I_l [n.l > 0] max(0, r.v)^alpha (or the GGX lobe, render/lobes.py):
+        # the image is k_a c A + k_d c D + k_s S.
         ambient_light = per_ray(mi.Color3f, p.ambient_light)
         lit_diffuse, lit_specular = mi.Color3f(0.0), mi.Color3f(0.0)
         for k in range(dr.width(p.light_position)):
@@ -355,8 +358,14 @@ class MitsubaRenderer(Renderer):
             distance = dr.norm(to_light)
             direction_l = to_light / distance
             cos_light = dr.dot(normal, direction_l)
-            reflected = 2.0 * cos_light * normal - direction_l
-            diffuse_term, specular_term = phong_terms(shininess, cos_light, dr.dot(reflected, view))
+            if self.lobe == "ggx":
+                diffuse_term = dr.select(cos_light > 0, cos_light, 0.0)
+                specular_term = dr.select(cos_light > 0, ggx_term(
+                    shininess, diffuse_term, dr.maximum(dr.dot(normal, view), 0.0),
+                    dr.dot(normal, half_vector(direction_l, view)), dr.sqrt), 0.0)
+            else:
+                reflected = 2.0 * cos_light * normal - direction_l
+                diffuse_term, specular_term = phong_terms(shininess, cos_light, dr.dot(reflected, view))
             if self.shadows:
                 with dr.suspend_grad():
                     visible = self._visibility(frame, point, normal, dr.detach(position),

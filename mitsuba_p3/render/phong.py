@@ -42,6 +42,12 @@ def phong_lobes(albedo, diffuse, specular, shininess, cos_light, cos_reflect):
     return diffuse * albedo * diffuse_term + specular * specular_term
 
 
+def half_vector(light, view):
+    """(l + v) / |l + v|, zero (not NaN, nor a NaN gradient) where the light is straight behind."""
+    total = light + view
+    return total * dr.rsqrt(dr.maximum(dr.squared_norm(total), 1e-12))
+
+
 def _as_colour(value):
     """A property given as rgb (or a number) becomes a Color3f; textures stay textures."""
     if isinstance(value, mi.Texture):
@@ -75,6 +81,10 @@ class PhongBSDF(mi.BSDF):
      * - shininess
        - |float|
        - alpha, the Phong exponent. (Default: 4)
+     * - lobe
+       - |string|
+       - The specular lobe: ``phong`` (k_s max(0, r.v)^alpha) or ``ggx`` (a GGX microfacet lobe of
+         roughness a^2 = 2 / (alpha + 2), :mod:`mitsuba_p3.render.lobes`). (Default: phong)
 
     ``eval`` returns the per-light Phong term (:func:`phong_lobes`) for a light in
     direction ``wo``; as in Mitsuba's convention it already contains the cosine of
@@ -91,6 +101,9 @@ class PhongBSDF(mi.BSDF):
         self.diffuse = mi.Float(props.get("diffuse", 0.9))
         self.specular = mi.Float(props.get("specular", 0.5))
         self.shininess = mi.Float(props.get("shininess", 4.0))
+        from .lobes import check_lobe
+
+        self.lobe = check_lobe(props.get("lobe", "phong"))
         self.parameters_changed()
         self.m_flags = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide
         self.m_components = [mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.FrontSide,
@@ -105,9 +118,18 @@ class PhongBSDF(mi.BSDF):
 
     def eval(self, ctx, si, wo, active=True):
         cos_light = mi.Frame3f.cos_theta(wo)
-        cos_reflect = dr.dot(mi.reflect(wo), si.wi)
-        value = phong_lobes(self.albedo(si, active), self.diffuse, self.specular, self.shininess,
-                            cos_light, cos_reflect)
+        if self.lobe == "ggx":
+            from .lobes import ggx_term
+
+            lit = cos_light > 0
+            cos_view = dr.maximum(mi.Frame3f.cos_theta(si.wi), 0.0)
+            half = half_vector(wo, si.wi)
+            highlight = ggx_term(self.shininess, dr.maximum(cos_light, 0.0), cos_view, half.z, dr.sqrt)
+            value = dr.select(lit, self.diffuse * self.albedo(si, active) * cos_light + self.specular * highlight, 0.0)
+        else:
+            cos_reflect = dr.dot(mi.reflect(wo), si.wi)
+            value = phong_lobes(self.albedo(si, active), self.diffuse, self.specular, self.shininess,
+                                cos_light, cos_reflect)
         return dr.select(active, value, 0.0)
 
     def sample(self, ctx, si, sample1, sample2, active=True):
@@ -154,7 +176,7 @@ class PhongBSDF(mi.BSDF):
     def to_string(self):
         return (f"PhongBSDF[colour={self.colour}, pattern={self.pattern is not None}, "
                 f"ambient={self.ambient}, diffuse={self.diffuse}, specular={self.specular}, "
-                f"shininess={self.shininess}]")
+                f"shininess={self.shininess}, lobe={self.lobe}]")
 
 
 def pixel_centre_rays(sensor) -> mi.Ray3f:

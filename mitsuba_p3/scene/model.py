@@ -168,6 +168,8 @@ class Scene:
     # radiance of the environment above and below the horizon (render/hemisphere.py); 0: point lights only
     sky: np.ndarray = field(default_factory=lambda: np.zeros(3))
     ground: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    # the specular lobe of every surface: Phong's highlight or GGX microfacets (render/lobes.py)
+    lobe: str = "phong"
 
     def validate(self) -> "Scene":
         """Check every value; raise :class:`SceneError` naming the first bad one."""
@@ -180,6 +182,11 @@ class Scene:
         self.light_radius = _number(self.light_radius, "light radius", 0.0)
         self.sky = _vector(self.sky, 3, "sky radiance", 0.0)
         self.ground = _vector(self.ground, 3, "ground radiance", 0.0)
+        from ..render.lobes import check_lobe
+
+        check_lobe(self.lobe)
+        if self.lobe != "phong" and (np.any(self.sky > 0) or np.any(self.ground > 0)):
+            raise SceneError(f"the sky and ground terms assume the Phong lobe; the {self.lobe} lobe has none")
         self.floor.material.validate("floor")
         self.floor.half_size = _number(self.floor.half_size, "floor half-size", 1e-6)
         if self.floor.pattern is not None:

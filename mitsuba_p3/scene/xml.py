@@ -25,8 +25,10 @@ def _el(parent, tag, **attrs):
 
 
 def _phong_bsdf_xml(parent, bsdf_id: str, colour: str, ambient: str, diffuse: str, specular: str,
-                    shininess: str, pattern_file: str | None = None):
+                    shininess: str, pattern_file: str | None = None, lobe: str = "phong"):
     bsdf = _el(parent, "bsdf", type="phong", id=bsdf_id)
+    if lobe != "phong":
+        _el(bsdf, "string", name="lobe", value=lobe)
     _el(bsdf, "rgb", name="colour", value=colour)
     for name, value in (("ambient", ambient), ("diffuse", diffuse), ("specular", specular),
                         ("shininess", shininess)):
@@ -80,13 +82,14 @@ def scene_to_xml(scene: Scene, description: str = "") -> str:
     fm = floor.material
     _phong_bsdf_xml(root, "floor-material", fmt(fm.colour), fmt(fm.ambient), fmt(fm.diffuse),
                     fmt(fm.specular), fmt(fm.shininess),
-                    floor.pattern_file if floor.pattern is not None else None)
+                    floor.pattern_file if floor.pattern is not None else None, scene.lobe)
     rect = _el(root, "shape", type="rectangle", id="floor")
     tr = _el(rect, "transform", name="to_world")
     _el(tr, "scale", value=fmt([floor.half_size, floor.half_size, 1.0]))
     _el(rect, "ref", id="floor-material")
 
-    _phong_bsdf_xml(root, "object-material", "$colour", "$ambient", "$diffuse", "$specular", "$shininess")
+    _phong_bsdf_xml(root, "object-material", "$colour", "$ambient", "$diffuse", "$specular", "$shininess",
+                    lobe=scene.lobe)
     for name in SHAPES:
         group = _el(root, "shape", type="shapegroup", id=name)
         for part in PARTS[name]:
@@ -295,6 +298,8 @@ def load_scene(path: str | Path, overrides: Mapping[str, object] | None = None) 
         raise SceneError(f"{source}: no <shape type=\"rectangle\" id=\"floor\">")
     floor_bsdf = _bsdf_of(floor_el, ids, source, "floor")
     scene.floor.material = _material_from_xml(floor_bsdf, source, "floor")
+    lobe = floor_bsdf.find("string[@name='lobe']")
+    scene.lobe = lobe.get("value", "phong") if lobe is not None else "phong"
     tf = _parse_transform(floor_el.find("transform"), source, "floor")
     scale = tf.get("scale", np.ones(3))
     if not np.isclose(scale[0], scale[1]) or "theta" in tf or np.any(tf.get("translate", np.zeros(3)) != 0):
