@@ -99,6 +99,36 @@ def choose_variant() -> tuple[str, str]:
     return "llvm_ad_rgb", "no CUDA device found; the CPU through LLVM"
 
 
+def _cuda_available() -> bool:
+    """Whether Dr.Jit finds a CUDA device; asks Dr.Jit only where the driver library loads (so a
+    machine without one prints none of Dr.Jit's start-up warnings)."""
+    import ctypes
+
+    try:
+        ctypes.CDLL("libcuda.so.1")
+    except OSError:
+        return False
+    import drjit as dr
+
+    return bool(dr.has_backend(dr.JitBackend.CUDA))
+
+
+def llvm_path() -> str | None:
+    """The libLLVM to export before Dr.Jit starts, or None where none is needed: a machine without a
+    usable libLLVM runs the CUDA variant when it is forced or Dr.Jit finds a GPU (a GPU machine need
+    not carry LLVM); otherwise, and always for an explicit ``DRJIT_LIBLLVM_PATH``, :func:`find_llvm`'s
+    error stands."""
+    try:
+        return find_llvm()[0]
+    except BackendError:
+        forced = os.environ.get(VARIANT_ENV, "").strip()
+        if os.environ.get("DRJIT_LIBLLVM_PATH"):
+            raise
+        if forced == "cuda_ad_rgb" or (forced != "llvm_ad_rgb" and _cuda_available()):
+            return None
+        raise
+
+
 def mitsuba():
     """Import Mitsuba in the variant :func:`choose_variant` picks (once) with a checked libLLVM
     and return the ``mitsuba`` module. The project's plugins register themselves when
@@ -106,12 +136,7 @@ def mitsuba():
     global _MI
     if _MI is not None:
         return _MI
-    try:
-        path, _ = find_llvm()
-    except BackendError:
-        if os.environ.get(VARIANT_ENV, "").strip() != "cuda_ad_rgb":
-            raise
-        path = None  # the CUDA variant needs no libLLVM
+    path = llvm_path()
     if path:
         # Read by Dr.Jit when its LLVM backend initialises, i.e. at the first LLVM array.
         os.environ["DRJIT_LIBLLVM_PATH"] = path

@@ -107,3 +107,25 @@ def test_jax_batching_follows_the_device(monkeypatch):
     monkeypatch.setenv(BATCHING_ENV, "pmap")
     with pytest.raises(SceneError, match="map, vmap"):
         batching_for()
+
+
+def test_a_gpu_machine_without_libllvm_runs_the_cuda_variant(monkeypatch):
+    """No usable libLLVM: the CUDA variant needs none, so a GPU (or a forced cuda_ad_rgb) goes on without
+    it; without a GPU, or with llvm_ad_rgb forced, the missing-LLVM error stands."""
+    def no_llvm():
+        raise BackendError("no usable libLLVM")
+
+    monkeypatch.setattr(backend, "find_llvm", no_llvm)
+    monkeypatch.delenv(backend.VARIANT_ENV, raising=False)
+    monkeypatch.delenv("DRJIT_LIBLLVM_PATH", raising=False)
+    monkeypatch.setattr(backend, "_cuda_available", lambda: True)
+    assert backend.llvm_path() is None
+    monkeypatch.setenv(backend.VARIANT_ENV, "llvm_ad_rgb")
+    with pytest.raises(BackendError, match="libLLVM"):
+        backend.llvm_path()
+    monkeypatch.delenv(backend.VARIANT_ENV)
+    monkeypatch.setattr(backend, "_cuda_available", lambda: False)
+    with pytest.raises(BackendError, match="libLLVM"):
+        backend.llvm_path()
+    monkeypatch.setenv(backend.VARIANT_ENV, "cuda_ad_rgb")
+    assert backend.llvm_path() is None

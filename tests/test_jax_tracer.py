@@ -184,11 +184,13 @@ def test_jax_grad_of_a_pure_loss(pair):
 
 
 def test_batch_equals_singles_and_vmap(pair):
+    """A batch renders each of its images as a single render does: to float32 rounding (1e-5; on a GPU
+    XLA fuses a vmapped batch's arithmetic differently, 5e-6 apart on an H200, results/gpu/)."""
     renderer = pair["jax"]
     params = random_object_params(np.random.default_rng(4), 6)
     batch = renderer.render(params)
     for b in range(6):
-        np.testing.assert_allclose(batch[b], renderer.render({k: v[b] for k, v in params.items()}), atol=1e-6)
+        np.testing.assert_allclose(batch[b], renderer.render({k: v[b] for k, v in params.items()}), atol=1e-5)
     full = {k: jnp.asarray(v) for k, v in renderer.merged(params).items()}
     objects = {k: full[k] for k in params}
     shared = {k: v for k, v in full.items() if k not in params}
