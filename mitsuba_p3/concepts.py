@@ -45,7 +45,7 @@ for every class, so softmax_k(-KL(C_I || C_k)) weighs each class by the
 expected log predictive density of the query's posterior under the concept,
 which a mixture of shots makes larger, not smaller. In 1-shot episodes, with
 both programs one posterior, the two directions differ little. Chosen on
-held-out train classes' 1- and 5-shot episodes (``scripts/select_spread.py
+held-out train classes' 1- and 5-shot episodes (``experiments/select_spread.py
 --shots 1,5 --directions ...``; docs/notebook.md); ``class||image`` is the paper's.
 
 Every density of the project speaks one vocabulary: ``log_prob(x)`` and

@@ -13,11 +13,16 @@ from mitsuba_p3.evaluate import held_out_accuracy
 
 
 def load_script(name: str):
-    """A script of ``scripts/`` imported as a module (its ``main`` is not run)."""
+    """A script of ``scripts/`` (the tools) or ``experiments/`` (the lab) imported as a module (its ``main``
+    is not run)."""
     import importlib.util
+    import sys
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
+    root = Path(__file__).resolve().parents[1]
+    path = next(p for p in (root / "scripts" / f"{name}.py", root / "experiments" / f"{name}.py") if p.is_file())
+    if str(path.parent) not in sys.path:       # a script may import its neighbours (probe_supersampling)
+        sys.path.insert(0, str(path.parent))
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
@@ -199,7 +204,7 @@ def test_train_baselines_trains_scores_and_resumes(tmp_path):
 
 
 def test_probe_resolution_reads_only_the_rendered_train_images(tmp_path):
-    """scripts/probe_resolution.py's view of a benchmark still rendering: the train images on disk,
+    """experiments/probe_resolution.py's view of a benchmark still rendering: the train images on disk,
     with their labels; test images and missing train images left out, the scene file kept."""
     probe = load_script("probe_resolution")
     root = tmp_path / "bench"
@@ -261,7 +266,7 @@ def test_compare_reproductions_reads_two_output_folders(tmp_path, capsys):
 
 
 def test_select_np3_start_takes_train_images_round_robin_over_classes():
-    """scripts/select_np3_start.py's images: train shots only, first shots of every class before any
+    """experiments/select_np3_start.py's images: train shots only, first shots of every class before any
     second shot, as many as asked (or all there are)."""
     from types import SimpleNamespace
 
@@ -282,7 +287,7 @@ def test_only_the_headline_run_writes_the_benchmarks_posterior_figure():
 
 
 def test_pooling_probe_place_correlation_sees_place_and_only_place():
-    """scripts/probe_baseline_pooling.py: an embedding that is where the object stands correlates 1
+    """experiments/probe_baseline_pooling.py: an embedding that is where the object stands correlates 1
     with the floor distance; one that does not see the place is not ordered by it. Images are
     embedded in one batch, so classes come back in the order they went in."""
     script = load_script("probe_baseline_pooling")

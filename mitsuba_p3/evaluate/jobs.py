@@ -264,7 +264,7 @@ class PosteriorMisfits:
 
 
 # The material rule's features, chosen on train classes, each class held out in turn
-# (``scripts/select_material_rule.py``, 90 train posteriors of fsclvr / room / dark at 120x160): the
+# (``experiments/select_material_rule.py``, 90 train posteriors of fsclvr / room / dark at 120x160): the
 # Phong weights, the reflectance's saturation and the Phong misfit scored 92.2 / 94.4 / 95.6%,
 # against 91.1 / 94.4 / 90.0% without the misfit and 85.6 / 90.0 / 81.1% for the weights alone.
 # The saturation alone did not carry over to the test splits (75.8 / 86.7 / 75.8%, docs/notebook.md);
@@ -279,7 +279,7 @@ def rules_with_train_posteriors(rules, dataset: Dataset, run_dir: Path, likeliho
     :data:`MATERIAL_RULE_FEATURES`, or without the misfit when ``misfits`` is None or unavailable),
     when it holds posteriors of both kinds; else ``rules`` unchanged. Chosen on train classes:
     learnt from posteriors, the rule beats the one learnt from the fit's materials
-    (``scripts/select_material_rule.py``; docs/notebook.md)."""
+    (``experiments/select_material_rule.py``; docs/notebook.md)."""
     return rules_learnt_from(rules, cached_train_posteriors(dataset, run_dir, likelihood), dataset.class_labels,
                              MATERIAL_RULE_FEATURES, misfits)
 

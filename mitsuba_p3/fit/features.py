@@ -29,7 +29,7 @@ IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
 # mean subtracted and no division by the std: its conv1 inputs are 255 * std (about 57.6) times
 # larger than the normalised inputs these torchvision weights expect. Feature differences are
 # scaled by that factor (exact for conv1_1 pre-ReLU, whose bias cancels in a difference), so the
-# squared distance and the weight 0.05 are on the paper's scale (scripts/neural_scale.py measures it).
+# squared distance and the weight 0.05 are on the paper's scale (experiments/neural_scale.py measures it).
 PAPER_FEATURE_SCALE = 255.0 * float(IMAGENET_STD.mean())
 
 

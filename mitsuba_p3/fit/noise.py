@@ -34,7 +34,7 @@ geometry, but it is the worse *comparison* between hypotheses: it caps the cost 
 a pixel the hypothesis gets wrong at -log(eps / 8) nats, so a smaller object that
 leaves part of a metal sphere to "outliers" beats the whole sphere in a slightly
 wrong shade, and the posterior shrinks metals. Chosen on train classes
-(``scripts/select_noise.py``: the share of train images whose most probable shape
+(``experiments/select_noise.py``: the share of train images whose most probable shape
 and size are right under each form, the same sampler otherwise).
 
 **The footprint.** Where the observed image differs from the empty-floor render by

@@ -16,7 +16,7 @@ misfit is the RMS residual per channel of the best of them, over the object's pi
 the fitted noise model's residual RMS (the train renders' own misfit), so that it reads the same
 on a dark set and a bright one. On the test posteriors of fsclvr, room and dark at 120x160:
 rubbers 1.2-3.7 (medians 1.8-2.0), metals 0.9-8.6 (medians 3.2-4.1)
-(``scripts/select_material_rule.py`` prints the rule's accuracy with and without it, on train).
+(``experiments/select_material_rule.py`` prints the rule's accuracy with and without it, on train).
 
 Non-negative, not ordinary, least squares: the fit stands for a render Phong could make. A pose
 estimate off the object inflates the misfit of either kind alike; the rule that reads it is learnt

@@ -5,7 +5,7 @@ them; nothing is resampled) with the protoprogram distance restricted to
 property subsets: all of them (the paper's distance), all but one, and one
 alone. Prints a markdown table of accuracies on the run's own episodes.
 
-    python scripts/ablate_distance.py data/fsclvr results/runs/fsclvr [--likelihood p3] [--episodes 100]
+    python experiments/ablate_distance.py data/fsclvr results/runs/fsclvr [--likelihood p3] [--episodes 100]
         [--subsets colour+class,colour] [--spread-shots 0]
 """
 from __future__ import annotations

@@ -10,7 +10,7 @@ the share of images whose most probable shape, and whose posterior-mean size
 class, match the labels, the mean log p(true shape), the mean position error of the
 posterior-mean shift, the SMC's temperatures, and seconds per image.
 
-    python scripts/select_noise.py --dataset data/fsclvr --model data/models/fsclvr [--images 30]
+    python experiments/select_noise.py --dataset data/fsclvr --model data/models/fsclvr [--images 30]
         [--forms fitted,robust,spectral] [--particles 32] [--islands 1] [--out rows.jsonl]
         [--shrink 0,1,3 --copies DIR] [--models phong=data/models/fsclvr,ggx=data/models/fsclvr-ggx]
 
@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
+from mitsuba_p3.fit.attributes import rules_for
 from mitsuba_p3.fit.model import FittedModel
 from mitsuba_p3.infer.model import PosteriorCore
 from mitsuba_p3.infer.posterior import default_likelihood
@@ -116,6 +117,7 @@ def main() -> None:
         models[f"spectral-{value}"] = shrunk_model(args.model, dataset, float(value), args.copies / f"shrink-{value}")
     # images outside, forms inside: a run stopped early compares the forms on the same images
     cores, rows = {}, {form: [] for form in models}
+    rules = {form: rules_for(model, dataset) for form, model in models.items()}
     for i, shot in enumerate(shots):
         for form, model in models.items():
             if (form, shot.index) in done:
@@ -131,7 +133,11 @@ def main() -> None:
             seconds = time.perf_counter() - start
             weights = shape_weights(run.statistics)
             scale = np.exp(run.positions[..., 3:6].reshape(-1, 3)).mean(axis=0)
-            shift = np.asarray(core.prior.constrain(run.positions.reshape(-1, run.positions.shape[-1]))["shift"])
+            drawn = {k: np.asarray(v) for k, v in
+                     core.prior.constrain(run.positions.reshape(-1, run.positions.shape[-1])).items()}
+            shift = drawn["shift"]
+            drawn["class"] = np.argmax(drawn.pop("class_probabilities"), axis=-1)
+            rule = rules[form].decide(drawn)
             row = {"form": form, "index": shot.index, "class": shot.class_name,
                    "shape_right": max(weights, key=weights.get) == shot.cls.shape,
                    "size_right": size_class(scale, sizes) == shot.cls.size,
@@ -141,6 +147,8 @@ def main() -> None:
                    # proxy of the material kind (the attributes' rule also weighs the Phong misfit)
                    "material_right": bool((sum(h["weight"] * h["shiny"] for h in run.statistics["hypotheses"].values())
                                            > 0.5) == (shot.cls.material == "metal")),
+                   # the fit's own material rule (a logistic regression on the fitted train materials)
+                   "material_rule_right": rule["material"] == shot.cls.material,
                    "temperatures": int(run.statistics["temperatures"]), "forced": run.statistics["forced"],
                    "seconds": seconds}
             rows[form].append(row)
@@ -156,6 +164,8 @@ def main() -> None:
                         "mean_log_p_true_shape": float(np.mean([r["log_p_true_shape"] for r in done_rows])),
                         "material_kind_p_shiny": float(np.mean([r["material_right"] for r in done_rows
                                                                 if "material_right" in r] or [np.nan])),
+                        "material_kind_fit_rule": float(np.mean([r["material_rule_right"] for r in done_rows
+                                                                 if "material_rule_right" in r] or [np.nan])),
                         "mean_position_error_mm": float(np.mean([r["position_error_mm"] for r in done_rows])),
                         "median_temperatures": float(np.median([r["temperatures"] for r in done_rows])),
                         "forced": float(np.mean([r["forced"] for r in done_rows])),

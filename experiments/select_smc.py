@@ -22,7 +22,7 @@ model's fitted Gaussian noise with each setting of ``--configs`` (a JSON object:
 No test image is used. The default's choice (5 random-walk sweeps per material update,
 against 3) was made with:
 
-    python scripts/select_smc.py --dataset data/fsclvr-lo --model data/models/fsclvr-lo --images 30 \\
+    python experiments/select_smc.py --dataset data/fsclvr-lo --model data/models/fsclvr-lo --images 30 \\
         --configs '{"walk3": {"mcmc_steps": 3, "material_every": 3}, "walk5": {}}'
 """
 from __future__ import annotations

@@ -7,7 +7,7 @@ sampler), whose decided attributes differ (shape, material kind, size, colour, b
 the model's attribute rules), and the median distance between the two posterior
 mean positions (m).
 
-    python scripts/compare_np3.py DATASET MODEL RUN
+    python experiments/compare_np3.py DATASET MODEL RUN
 """
 from __future__ import annotations
 

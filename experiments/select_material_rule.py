@@ -21,7 +21,7 @@ Each train class is held out in turn: the ``posteriors`` rule is learnt on the o
 classes' posteriors and scored on the held-out class's (the ``fit`` rule is fixed).
 Prints JSON: material accuracy per rule, and how many posteriors were scored.
 
-    python scripts/select_material_rule.py --dataset data/fsclvr-lo --model data/models/fsclvr-lo \\
+    python experiments/select_material_rule.py --dataset data/fsclvr-lo --model data/models/fsclvr-lo \\
         --run out/train-smc-v5 [--likelihood p3]
 """
 from __future__ import annotations

@@ -1,12 +1,12 @@
 """Choose the protoprogram distance's terms on a benchmark's *train* classes.
 
-Re-scores the cached train-class posteriors of ``scripts/select_sigma.py`` (one
+Re-scores the cached train-class posteriors of ``experiments/select_sigma.py`` (one
 sigma's folder, 2+ shots per class) on N-way 1-shot episodes among the train
 classes, with the distance restricted to each given subset of properties. No
 test image is used, so the chosen subset can then be evaluated on the test
-split (``scripts/ablate_distance.py --subsets``) without peeking.
+split (``experiments/ablate_distance.py --subsets``) without peeking.
 
-    python scripts/select_distance.py data/fsclvr results/sigma/fsclvr/sigma-1 \\
+    python experiments/select_distance.py data/fsclvr results/sigma/fsclvr/sigma-1 \\
         [--subsets all,colour,colour+class,colour+scale+class] [--episodes 200]
 """
 from __future__ import annotations

@@ -17,7 +17,7 @@ material (the modal shape's shiny share against the label), the mean log p(true 
 seconds per image. The default window (56x72) is kept at both sizes, so a larger image's small
 footprint is scored at the same render cost. No test image is read.
 
-    python scripts/probe_resolution.py --dataset data/room-mid --model data/models/room-lo \\
+    python experiments/probe_resolution.py --dataset data/room-mid --model data/models/room-lo \\
         --low data/room-lo --resolution 240x320 --out data/models/room-mid --size small --images 16
 """
 from __future__ import annotations

@@ -12,7 +12,7 @@ how well the distance of their embeddings follows the distance of the objects on
 (Spearman's rank correlation over a class's pairs, averaged over classes; 0 for an embedding
 that ignores where the object stands). Train classes only.
 
-    python scripts/probe_baseline_pooling.py data-lo --baselines results/baselines-lo --benchmarks fsclvr,room
+    python experiments/probe_baseline_pooling.py data-lo --baselines results/baselines-lo --benchmarks fsclvr,room
 """
 from __future__ import annotations
 

@@ -11,7 +11,7 @@ line per image and a summary: shape accuracy and mean log p(true shape) under ea
 how often the two NP3 runs decide the same shape, the log evidences' mean difference,
 and the seconds of each (the bridge's own, beside P3's and NP3-from-the-prior's).
 
-    python scripts/select_np3_start.py data-lo/fsclvr data-lo/models/fsclvr --images 30 \\
+    python experiments/select_np3_start.py data-lo/fsclvr data-lo/models/fsclvr --images 30 \\
         --out out/np3-start-fsclvr.jsonl
 
 Resumes from ``--out`` (images already there are not sampled again).

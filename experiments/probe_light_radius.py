@@ -2,7 +2,7 @@
 (true geometry, fitted materials) with every light widened to a disc of radius r, against the
 images; r = 0 is the fit's hard shadows. Prints one line per radius with the render time.
 
-    python scripts/probe_light_radius.py DATA_ROOT MODEL_FOLDER [--radii 0,0.01,...] [--samples 16]
+    python experiments/probe_light_radius.py DATA_ROOT MODEL_FOLDER [--radii 0,0.01,...] [--samples 16]
 """
 import argparse
 import time

@@ -4,7 +4,7 @@ the train split's true geometry with the fitted materials: the RMS on the outlin
 either side of it) and over the whole image, f = 1, 2, 3. The path tracer averages many rays over each
 pixel's square; the Phong renders shoot one ray through its centre.
 
-    python scripts/probe_supersampling.py DATA_ROOT MODEL_FOLDER
+    python experiments/probe_supersampling.py DATA_ROOT MODEL_FOLDER
 """
 import argparse
 

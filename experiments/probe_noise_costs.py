@@ -7,7 +7,7 @@ object that is not there; one that charges a 2 mm shift more than an absent obje
 sampler to the empty window (it has more prior volume than a needle-sharp peak). Prints one JSON
 row per image and form, then the median drop per shift and form.
 
-    python scripts/probe_noise_costs.py data/fsclvr --model data/models/fsclvr [--images 12]
+    python experiments/probe_noise_costs.py data/fsclvr --model data/models/fsclvr [--images 12]
         [--forms fitted,sandwich,spectral]
 """
 from __future__ import annotations

@@ -13,7 +13,7 @@ over the model's selected channels, computed three ways:
 Beside them, the colour log-likelihood gap between the pair and an empty-floor render (the evidence
 the object's pixels carry) under the fitted noise model and under the paper's sigma = 1.
 
-    python scripts/neural_scale.py DATASET MODEL [--pairs 8]
+    python experiments/neural_scale.py DATASET MODEL [--pairs 8]
 """
 from __future__ import annotations
 

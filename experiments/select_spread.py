@@ -8,10 +8,10 @@ K-shot episodes among the other half's classes, then the other way round. Each
 distance is scored with the paper's programs (no spread) and with the fitted
 spread, so the spread is judged on classes it was not fitted on; ``--directions``
 adds the KL's other direction. No test image is used. K-shot episodes need K + 1
-posteriors per train class (``evaluate`` samples three; ``scripts/sample_train_shots.py``
+posteriors per train class (``evaluate`` samples three; ``experiments/sample_train_shots.py``
 samples six, for 5-shot episodes).
 
-    python scripts/select_spread.py data/fsclvr out/eval-fitted [--likelihood p3] [--episodes 200]
+    python experiments/select_spread.py data/fsclvr out/eval-fitted [--likelihood p3] [--episodes 200]
         [--subsets all,colour+class] [--shots 1,5] [--directions class||image,image||class] [--spreads fitted]
 """
 from __future__ import annotations

@@ -8,7 +8,7 @@ sampler scores (:data:`~mitsuba_p3.fit.noise.SCORING_WINDOW`, centred on the obj
 fields of growing degree are projected out per channel, as a marginalised smooth illumination
 nuisance would: the RMS left says how much of the residual is smooth at the window's scale.
 
-    python scripts/probe_residuals.py DATA_ROOT MODEL_FOLDER
+    python experiments/probe_residuals.py DATA_ROOT MODEL_FOLDER
 """
 import argparse
 

@@ -16,7 +16,7 @@ scored at the *true* pose too, where they are not at their best, so the margin h
 overstates what the image holds: with ``--smc``, compare each shape's best particle
 (``smc_max_log_likelihood``) with the truth's likelihood on the same pixels.
 
-    python scripts/shape_at_truth.py --dataset data/fsclvr --model data/models/fsclvr [--split train] [--every 3] [--size small]
+    python experiments/shape_at_truth.py --dataset data/fsclvr --model data/models/fsclvr [--split train] [--every 3] [--size small]
 
 With ``--smc`` it also runs the default SMC on each image and prints, per shape, the
 log likelihood at the truth (the best least-squares material, under the model's fitted

@@ -13,7 +13,7 @@ shots of every train class (cached and resumable like an evaluation run, in
 classes: one cached shot of each chosen class is the support, another the query.
 Writes ``OUT/sigma.md``, ``OUT/sigma.csv`` and ``OUT/sigma.png``.
 
-    python scripts/select_sigma.py data/fsclvr data/models/fsclvr results/sigma/fsclvr \\
+    python experiments/select_sigma.py data/fsclvr data/models/fsclvr results/sigma/fsclvr \\
         [--sigmas 0.1,0.3,1,2] [--shots 2] [--episodes 200] [--jobs CORES]
 """
 from __future__ import annotations

@@ -4,13 +4,13 @@
 5-shot episode needs six images of a class (five supports and a query), so a choice that
 must hold in the 5-shot settings is scored on runs made with this script, then with
 
-    python scripts/select_spread.py DATASET RUN --shots 1,5
+    python experiments/select_spread.py DATASET RUN --shots 1,5
 
 The run folder is an evaluation run (same ``run.json``, same cache): posteriors already in
 it are kept, a killed run resumes, and ``mitsuba-p3 evaluate`` can later use it. ``--sampler``
 sets :class:`~mitsuba_p3.infer.smc.SMCConfig` fields (JSON), e.g. ``'{"ridge": 0}'``.
 
-    python scripts/sample_train_shots.py data/fsclvr-lo data/models/fsclvr-lo RUN --shots 6 --jobs 2
+    python experiments/sample_train_shots.py data/fsclvr-lo data/models/fsclvr-lo RUN --shots 6 --jobs 2
 """
 from __future__ import annotations
 
