@@ -36,7 +36,7 @@ from mitsuba_p3.files import atomic_json
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=Path("data"), help="folder of the benchmark folders")
-    parser.add_argument("--out", type=Path, default=Path("results"), help="the reproduction's output folder")
+    parser.add_argument("--out", type=Path, default=Path("out/reproduction"), help="the reproduction's output folder (reproduce's default)")
     parser.add_argument("--benchmarks", default="fsclvr,dark,room")
     parser.add_argument("--methods", default="protonets,maml")
     parser.add_argument("--resolutions", default="56,84")

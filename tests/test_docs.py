@@ -35,3 +35,18 @@ def test_the_readme_is_short_and_every_local_link_resolves():
             assert path.exists(), f"{page.name} links to {target}, which does not exist"
             if anchor and path.suffix == ".md":
                 assert anchor in anchors_of(path), f"{page.name} links to {target}#{anchor}, no such heading"
+
+
+def test_every_result_folder_says_how_it_was_made():
+    """results/ holds only frozen snapshots: each folder has a README and a manifest naming the command,
+    commit, machine and date (scripts/manifest.py); nothing lies loose at its top."""
+    import json
+
+    results = ROOT / "results"
+    loose = [p.name for p in results.iterdir() if p.is_file()]
+    assert not loose, f"files at the top of results/: {loose}; put them in a folder with a manifest"
+    for folder in (p for p in results.iterdir() if p.is_dir()):
+        assert (folder / "README.md").is_file(), f"{folder.name} has no README.md"
+        manifest = json.loads((folder / "manifest.json").read_text())
+        missing = [k for k in ("command", "commit", "date", "machine") if not manifest.get(k)]
+        assert not missing, f"{folder.name}/manifest.json lacks {missing}"

@@ -208,7 +208,7 @@ def evaluate(
 def reproduce(
     data: Path = typer.Option(Path("data"), help="Folder of benchmark folders (data/fsclvr, ...) and data/models; "
                                                  "what is missing is generated and fitted."),
-    out: Path = typer.Option(Path("results"), help="Tables, timing log and one run folder per benchmark (resumes)."),
+    out: Path = typer.Option(Path("out/reproduction"), help="Tables, timing log and one run folder per benchmark (resumes); results/ holds only the frozen snapshots the docs cite."),
     benchmarks: str = typer.Option("fsclvr,room,dark,ood", help="Comma-separated benchmarks."),
     likelihoods: str = typer.Option("p3,np3", help="Comma-separated: p3, np3."),
     episodes: int = typer.Option(100, help="Episodes per N-way K-shot setting."),
