@@ -371,6 +371,18 @@ def test_tempering_step_reweights_resamples_moves_and_adapts():
     exact = norm.logpdf(y, 0, np.sqrt(1 + s ** 2))
     np.testing.assert_allclose(new.log_evidence, exact, atol=0.05)
 
+    # a render that breaks (a NaN log likelihood) stops the run instead of jumping it to lambda = 1
+    from mitsuba_p3.errors import InferenceError
+
+    broken = loglik(z)
+    broken[1, 7] = np.nan
+    with pytest.raises(InferenceError, match=r"NaN .*rows \[1\]"):
+        tempering.init(z, broken, norm.logpdf(z[..., 0]))
+    nan_move = lambda key, st: (st._replace(loglikelihood=np.where(np.arange(4000) == 3, np.nan,  # noqa: E731
+                                                                    st.loglikelihood)), {"walk": np.ones(2)})
+    with pytest.raises(InferenceError, match="NaN"):
+        tempering.step(jax.random.PRNGKey(2), state, nan_move, 0.5)
+
 
 def test_footprint_of_a_noisy_image_is_the_object_not_the_noise():
     """An image noisier than the floor the threshold was fitted on (an SBC draw at the likelihood's

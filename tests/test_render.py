@@ -288,6 +288,19 @@ def test_the_ggx_lobe_is_mitsubas_roughconductor(mi):
         assert reference.max() > 0.1
 
 
+@pytest.mark.parametrize("kind", ["mitsuba", "jax"])
+def test_the_ggx_lobe_renders_every_shininess_the_prior_can_draw(kind):
+    """The priors' mixtures reach negative shininess: there the GGX lobe is the roughest (a^2 = 1), finite,
+    as at alpha = 0 (an SMC run once met NaN renders there and lost its cube hypothesis)."""
+    scene = load_scene(SCENES / "room.xml", {"shape": "cube", "specular": "0.8"}).replace(lobe="ggx")
+    renderer = make_renderer(scene, kind, height=60, width=80)
+    alphas = np.array([-30.0, -3.0, -1.0, 0.0, 2.0, 500.0], np.float32)
+    images = renderer.render({"shininess": alphas, "shift": np.zeros((6, 2), np.float32)})
+    assert np.all(np.isfinite(images))
+    np.testing.assert_array_equal(images[0], images[3])
+    assert np.abs(images[3] - images[4]).max() > 0.01
+
+
 def test_the_ggx_lobe_matches_mitsubas_own_integrator_and_survives_the_xml(mi, tmp_path):
     """A scene with the GGX lobe: saved and loaded it keeps it; the renderer and the phong BSDF
     (lobe=ggx) under the phong_integrator on the saved XML agree; and it is not the Phong image."""

@@ -71,6 +71,7 @@ Move = Callable[[object, TemperedState], tuple[TemperedState, dict]]
 def init(position, loglikelihood, logprior, log_evidence=None, tempering=None) -> TemperedState:
     """A state at lambda = 0 (or ``tempering``) with walk scale 1."""
     rows = np.shape(loglikelihood)[0]
+    _check_finite(np.asarray(loglikelihood))
     zeros = np.zeros(rows)
     return TemperedState(np.asarray(position, np.float32), np.asarray(loglikelihood, np.float32),
                          np.asarray(logprior, np.float32), zeros if tempering is None else np.asarray(tempering, float),
@@ -163,7 +164,19 @@ def step(key, state: TemperedState, move: Move, target_ess: float, count: int | 
     k_reweight, k_move = jax.random.split(key)
     state, increment, ess = reweight(k_reweight, state, target_ess, count, offset, force, shared)
     state, acceptance = move(k_move, state)
+    _check_finite(state.loglikelihood)
     return _adapt(state, acceptance), TemperingInfo(increment, ess, state.tempering.copy(), acceptance)
+
+
+def _check_finite(loglikelihood) -> None:
+    """A NaN log likelihood (a render that broke) poisons every weight and the increment's bisection,
+    and a run would silently jump to lambda = 1 with a meaningless evidence: refuse it instead."""
+    if np.isnan(loglikelihood).any():
+        from ..errors import InferenceError
+
+        rows = sorted({int(r) for r in np.argwhere(np.isnan(loglikelihood))[:, 0]})
+        raise InferenceError(f"the log likelihood is NaN for some particles (rows {rows}): a render produced "
+                             "non-finite values; this is a bug in the renderer or the model, please report it")
 
 
 def _adapt(state: TemperedState, acceptance: dict) -> TemperedState:

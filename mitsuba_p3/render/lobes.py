@@ -48,8 +48,13 @@ def check_lobe(lobe: str) -> str:
 
 
 def ggx_roughness_squared(shininess):
-    """a^2 of the GGX lobe whose sharpness matches a Phong exponent: 2 / (alpha + 2)."""
-    return 2.0 / (shininess + 2.0)
+    """a^2 of the GGX lobe whose sharpness matches a Phong exponent: 2 / (alpha + 2), for alpha >= 0.
+
+    The priors' Gaussian mixtures over alpha reach below 0 (a GGX fit's metals at alpha 32-64 and
+    rubbers at 1-16 make a wide mixture); there the lobe is the roughest, a^2 = 1, so that every
+    point of the sampler's space renders (alpha < -2 would take a square root of a negative number).
+    max(alpha, 0) is written (alpha + |alpha|) / 2 so that Dr.Jit, JAX and numpy share it."""
+    return 2.0 / (0.5 * (shininess + abs(shininess)) + 2.0)
 
 
 def ggx_term(shininess, cos_light, cos_view, cos_half, sqrt):
