@@ -39,7 +39,11 @@ def diffuse_term(normal_z, sky, ground):
 
 
 def specular_term(reflected_z, shininess, sky, ground, asin, erf, sqrt, clip):
-    """H_s: the Phong lobe about the mirror direction (height ``reflected_z``) over the two hemispheres."""
+    """H_s: the Phong lobe about the mirror direction (height ``reflected_z``) over the two hemispheres
+    (alpha < 0 reads as 0, as in every lobe: :func:`~mitsuba_p3.render.lobes.sharpness`)."""
+    from .lobes import sharpness
+
+    shininess = sharpness(shininess)
     width = sqrt(shininess + 2.0)
     elevation = asin(clip(reflected_z, -1.0, 1.0))
     above = 0.5 * (1.0 + erf(elevation * width * SQRT_HALF))

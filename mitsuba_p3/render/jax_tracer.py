@@ -35,7 +35,7 @@ import numpy as np
 from ..scene import Camera, Scene
 from ..shapes import SHAPES
 from . import hemisphere
-from .lobes import ggx_term
+from .lobes import ggx_term, sharpness
 from .contract import OBJECT_SHAPES, Renderer, is_batched, unbatch
 
 BATCHINGS = ("map", "vmap")
@@ -192,8 +192,8 @@ def bilinear(texture, u, v):
 
 
 def highlight(shininess, cos_reflect):
-    """The Phong highlight max(0, r.v)^alpha (safe for alpha near 0 and r.v near 0)."""
-    return jnp.where(cos_reflect > 0, jnp.exp(shininess * jnp.log(jnp.maximum(cos_reflect, _TINY))), 0.0)
+    """The Phong highlight max(0, r.v)^alpha (safe for alpha near 0 and r.v near 0; alpha < 0 reads as 0)."""
+    return jnp.where(cos_reflect > 0, jnp.exp(sharpness(shininess) * jnp.log(jnp.maximum(cos_reflect, _TINY))), 0.0)
 
 
 def _geometry(intersect, p, origin, directions, floor_half_size: float):

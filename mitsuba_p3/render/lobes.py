@@ -47,14 +47,19 @@ def check_lobe(lobe: str) -> str:
     return lobe
 
 
-def ggx_roughness_squared(shininess):
-    """a^2 of the GGX lobe whose sharpness matches a Phong exponent: 2 / (alpha + 2), for alpha >= 0.
+def sharpness(shininess):
+    """max(alpha, 0), written (alpha + |alpha|) / 2 so that Dr.Jit, JAX and numpy share it. The priors'
+    Gaussian mixtures over alpha reach below 0, where neither lobe means anything (Phong's
+    max(0, r.v)^alpha grows away from the mirror direction and overflows to inf, and inf times a zero
+    weight is NaN; GGX would take a square root of a negative number): every lobe reads alpha through
+    this, so that every point of the sampler's space renders, as the flat (alpha = 0) lobe."""
+    return 0.5 * (shininess + abs(shininess))
 
-    The priors' Gaussian mixtures over alpha reach below 0 (a GGX fit's metals at alpha 32-64 and
-    rubbers at 1-16 make a wide mixture); there the lobe is the roughest, a^2 = 1, so that every
-    point of the sampler's space renders (alpha < -2 would take a square root of a negative number).
-    max(alpha, 0) is written (alpha + |alpha|) / 2 so that Dr.Jit, JAX and numpy share it."""
-    return 2.0 / (0.5 * (shininess + abs(shininess)) + 2.0)
+
+def ggx_roughness_squared(shininess):
+    """a^2 of the GGX lobe whose sharpness matches a Phong exponent: 2 / (alpha + 2); the roughest,
+    a^2 = 1, for alpha <= 0 (:func:`sharpness`)."""
+    return 2.0 / (sharpness(shininess) + 2.0)
 
 
 def ggx_term(shininess, cos_light, cos_view, cos_half, sqrt):

@@ -29,9 +29,11 @@ def phong_terms(shininess, cos_light, cos_reflect):
     ``cos_light`` is n.l and ``cos_reflect`` is r.v (r: the light direction mirrored
     about n, v: towards the viewer); both are zero where the light is behind the surface.
     """
+    from .lobes import sharpness
+
     lit = cos_light > 0
     cos_r = dr.maximum(cos_reflect, _TINY)
-    highlight = dr.select(cos_reflect > 0, dr.exp(shininess * dr.log(cos_r)), 0.0)
+    highlight = dr.select(cos_reflect > 0, dr.exp(sharpness(shininess) * dr.log(cos_r)), 0.0)
     return dr.select(lit, cos_light, 0.0), dr.select(lit, highlight, 0.0)
 
 
