@@ -76,8 +76,13 @@ class ReproduceConfig:
     benchmarks: tuple = COLUMNS
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     resolution: tuple | None = None    # (H, W) of generated benchmarks; None: the benchmark's default
+    observation: str = "phong"         # the observation model of the fits made here (fit --observation)
 
     def __post_init__(self):
+        from .fit.scene_opt import OBSERVATIONS
+
+        if self.observation not in OBSERVATIONS:
+            raise ConfigError(f"unknown observation model {self.observation!r}; choose {' or '.join(OBSERVATIONS)}")
         object.__setattr__(self, "benchmarks", tuple(self.benchmarks))
         if self.resolution is not None:
             object.__setattr__(self, "resolution", tuple(int(v) for v in self.resolution))
@@ -90,21 +95,23 @@ class ReproduceConfig:
 
 
 def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] | None = None,
-            resolution: tuple[int, int] | None = None) -> tuple[Path, Path]:
+            resolution: tuple[int, int] | None = None, observation: str = "phong") -> tuple[Path, Path]:
     """The benchmark folder and the model folder evaluation uses (made when missing; generated at
-    ``resolution``, (H, W), or the benchmark's default)."""
+    ``resolution``, (H, W), or the benchmark's default; fitted with the ``observation`` model, in
+    ``data/models/V`` for the paper's Phong model and ``data/models/V-OBSERVATION`` otherwise)."""
     from .benchmarks.generate import generate
     from .fit.model import fit_model
+    from .fit.scene_opt import SceneOptConfig
 
     folder = data / variant
     generate(variant, folder, resolution=resolution,
              progress=(lambda d, t: progress(f"{variant}: generate", d, t)) if progress else None)
     source = fitted_on(variant)
-    model = data / "models" / source
+    model = data / "models" / (source if observation == "phong" else f"{source}-{observation}")
     if not (model / "model.json").exists():
         if source != variant:
             generate(source, data / source, resolution=resolution)
-        fit_model(data / source, model,
+        fit_model(data / source, model, scene_config=SceneOptConfig(observation=observation),
                   progress=(lambda stage, d, t, _: progress(f"{source}: fit {stage}", d, t)) if progress else None)
     return folder, model
 
@@ -154,7 +161,7 @@ def reproduce(data: str | Path, out: str | Path, config: ReproduceConfig | None 
     minutes = {}
     for variant in config.benchmarks:
         start = time.perf_counter()
-        folder, model = prepare(data, variant, progress, config.resolution)
+        folder, model = prepare(data, variant, progress, config.resolution, config.observation)
         prepared = (time.perf_counter() - start) / 60
         start = time.perf_counter()
         noise = evaluation.noise if evaluation.noise != "paper" and evaluation.sigma is None else evaluation.sigma

@@ -45,6 +45,22 @@ def test_optimisation_lowers_the_loss_substantially(tiny_model):
     assert final < 0.5 * losses[0]
 
 
+def test_a_microfacet_fit_renders_with_its_lobe_everywhere(tiny_dataset, tmp_path):
+    """fit --observation microfacet: the model folder's scene (and its scene.xml) carry the GGX lobe, so
+    every later render of the model (infer, evaluate, the noise stage) uses it; the fit still learns."""
+    from mitsuba_p3.errors import ConfigError
+    from mitsuba_p3.reproduce import ReproduceConfig
+    from mitsuba_p3.scene import load_scene
+
+    model = fit_model(tiny_dataset, tmp_path / "ggx", stages=("scene",),
+                      scene_config=SceneOptConfig(**TINY_FIT, observation="microfacet"))
+    assert model.scene().lobe == "ggx" and load_scene(model.root / "scene.xml").lobe == "ggx"
+    losses = [float(row.split(",")[-1]) for row in (model.root / "loss_curve.csv").read_text().splitlines()[1:]]
+    assert losses[-1] < 0.5 * losses[0]
+    with pytest.raises(ConfigError, match="observation"):
+        ReproduceConfig(observation="pathtraced")
+
+
 def _phong_dataset(folder, truth, materials, n_images=12, seed=0):
     """A data set whose observations are Phong renders of known lights and materials."""
     from mitsuba_p3.render import make_renderer

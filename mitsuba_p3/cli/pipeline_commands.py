@@ -234,6 +234,9 @@ def reproduce(
     kl: str = typer.Option(DistanceConfig.direction, "--kl", help=KL_HELP),
     resolution: Optional[str] = typer.Option(None, help="HxW of benchmarks generated here (default: 480x640); "
                                                         "folders already made must match it."),
+    observation: str = typer.Option("phong", help="Observation model of the fits made here (as fit --observation; "
+                                                  "models go to data/models/V-OBSERVATION unless phong); use another "
+                                                  "--out than a Phong reproduction's."),
     tables_only: bool = typer.Option(False, "--tables-only", help="Only write the tables and figures again from "
                                      "the runs and scored baselines already in OUT (nothing generated or sampled)."),
 ) -> None:
@@ -260,7 +263,8 @@ def reproduce(
                                   distance=DistanceConfig(properties=parse_properties(distance),
                                                           spread_shots=spread_shots, direction=kl))
     height, width = parse_resolution(resolution)
-    config = ReproduceConfig(benchmarks=tuple(b.strip() for b in benchmarks.split(",") if b.strip()),
+    config = ReproduceConfig(observation=observation,
+                             benchmarks=tuple(b.strip() for b in benchmarks.split(",") if b.strip()),
                              evaluation=evaluation, resolution=(height, width) if height else None)
     start = time.perf_counter()
     bar, track = phase_progress_bar("reproduce")
