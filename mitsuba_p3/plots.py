@@ -413,3 +413,55 @@ def attribute_bars(path: str | Path, panels: dict[str, dict[str, dict]]) -> Path
     axes[0].set_ylabel("right (%) of test images")
     figure.tight_layout()
     return save_figure(figure, path)
+
+
+def sbc_figures(summary: dict, result, path: Path) -> None:
+    """The SBC figure: per coordinate the ECDF difference with its simultaneous 95% band (top two
+    rows) and the rank histogram with a uniform histogram's 99% band (bottom two), and the shape
+    posterior's reliability diagram (a separate ``calibration.png`` beside ``path``)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from scipy.stats import binom
+
+    from .evaluate.sbc import CHECKED, ecdf_bands, ecdf_difference
+
+    n, bins = summary["images"], summary["bins"]
+    z, lower, upper = ecdf_bands(n)
+    difference = ecdf_difference(result.ranks, result.draws, z)
+    fig, axes = plt.subplots(4, 4, figsize=(13, 9))
+    for j, (ax, name) in enumerate(zip(axes[:2].ravel(), CHECKED)):
+        ax.fill_between(z, lower, upper, color="0.85", lw=0)
+        inside = summary["ecdf_inside_95_band"][name]
+        ax.plot(z, difference[:, j], color="tab:blue" if inside else "tab:red", lw=1.2)
+        ax.axhline(0, color="0.5", lw=0.6)
+        ax.set_title(f"{name}  KS p={summary['rank_uniformity_ks_p'][name]:.2g}", fontsize=9)
+        ax.tick_params(labelsize=7)
+    low, high = binom.ppf([0.005, 0.995], n, 1 / bins)
+    for ax, name in zip(axes[2:].ravel(), CHECKED):
+        ax.axhspan(low, high, color="0.85")
+        ax.bar(np.arange(bins), summary["rank_counts"][name], color="tab:blue")
+        ax.set_title(f"{name}  chi2 p={summary['rank_uniformity_p'][name]:.2g}", fontsize=9)
+        ax.set_xticks([])
+        ax.tick_params(labelsize=7)
+    axes[0][0].set_ylabel("ECDF - uniform")
+    axes[2][0].set_ylabel("rank count")
+    fig.suptitle(f"SBC: {n} simulations, {summary['draws']} draws each. Top: ECDF difference, grey the "
+                 "simultaneous 95% band (red: leaves it). Bottom: rank histograms, grey a uniform's 99% band",
+                 fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    bins_ = [b for b in summary["class"]["reliability"] if b[2] > 0]
+    fig, ax = plt.subplots(figsize=(3.6, 3.4))
+    ax.plot([0, 1], [0, 1], ls="--", color="0.6", lw=1)
+    ax.plot([b[0] for b in bins_], [b[1] for b in bins_], "o-", color="tab:blue")
+    for b in bins_:
+        ax.annotate(str(b[2]), (b[0], b[1]), textcoords="offset points", xytext=(4, -10), fontsize=7)
+    ax.set_xlabel("confidence of the modal shape")
+    ax.set_ylabel("share correct")
+    ax.set_title(f"shape calibration: ECE {summary['class']['ece']:.3f}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path.with_name("calibration.png"), dpi=110)
+    plt.close(fig)

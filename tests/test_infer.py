@@ -727,16 +727,10 @@ def test_sbc_ranks_are_uniform_for_an_exact_posterior_and_not_for_a_narrow_one()
 def test_sbc_runs_on_the_phong_model_and_resumes(fitted, tmp_path):
     """A tiny SBC of the SMC on the Phong model: ranks in range, class probabilities a distribution,
     and a second call with the same cache continues the first run instead of redoing it."""
-    import sys
-    from pathlib import Path
-
     from mitsuba_p3.errors import ConfigError
-    from mitsuba_p3.evaluate.sbc import run_sbc
+    from mitsuba_p3.evaluate.sbc import run_sbc, smc_sampler
     from mitsuba_p3.infer.model import PosteriorCore
     from mitsuba_p3.infer.smc import SMCConfig
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-    from sbc import smc_sampler
 
     core = PosteriorCore(fitted, LikelihoodConfig("p3", sigma=0.2, shadows=True), "mitsuba", *RES)
     sample = smc_sampler(core, SMCConfig(particles=4, oversample=2, mcmc_steps=1, final_steps=0, draws=16, islands=1))

@@ -145,6 +145,40 @@ def infer(
 
 
 @app.command()
+def sbc(
+    model: Path = typer.Option(..., "--model", help="Fitted-model folder (mitsuba-p3 fit) whose own renders are simulated."),
+    out: Path = typer.Option(Path("out/sbc"), "--out", help="Report folder: sbc.json, sbc.png, calibration.png and "
+                                                          "cache.npz, from which a killed run resumes."),
+    images: int = typer.Option(200, help="Simulations (scenes drawn from the model's prior)."),
+    draws: int = typer.Option(99, help="Posterior draws ranked against each simulation's truth."),
+    particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
+    resolution: str = typer.Option("120x160", help="HxW of the simulated images."),
+    seed: int = typer.Option(0, help="Seed of the simulations and the sampler."),
+    noise: str = typer.Option("fitted", help="The likelihood's power: fitted (1 / correlation area) or sandwich."),
+) -> None:
+    """Simulation-based calibration of the default sampler on a model's own renders: do its posteriors'
+    ranks of the truth come out uniform (position, size, colour), and is its shape posterior calibrated?"""
+    from ..errors import ConfigError
+    from ..evaluate.sbc import calibrate_model
+    from ..files import claim_output_folder, folder_lock
+
+    if noise not in ("fitted", "sandwich"):
+        raise ConfigError(f"--noise must be fitted or sandwich, got {noise!r}")
+    if images < 2 or draws < 1:
+        raise ConfigError(f"--images must be at least 2 and --draws at least 1; got {images} and {draws}")
+    height, width = parse_resolution(resolution)
+    with folder_lock(model, "mitsuba-p3 sbc", shared=True):
+        claim_output_folder(out, ("cache.npz", "sbc.json"), "mitsuba-p3 sbc")
+        bar, update = progress_bar("simulations")
+        with bar:
+            summary = calibrate_model(model, out, images, draws, particles, (height, width), seed, noise,
+                                      progress=update)
+    shown = {k: v for k, v in summary.items() if k != "rank_counts"}
+    shown["class"] = {k: v for k, v in summary["class"].items() if k != "reliability"}
+    typer.echo(json.dumps(shown, indent=2))
+
+
+@app.command()
 def evaluate(
     dataset: Path = typer.Argument(..., help="Benchmark folder (mitsuba-p3 benchmark generate)."),
     model: Path = typer.Option(..., "--model", help="Fitted-model folder (mitsuba-p3 fit)."),
