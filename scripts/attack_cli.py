@@ -362,8 +362,8 @@ def attacks() -> list[Attack]:
     add(Attack("benchmark check: no scene.xml", lambda w: ["benchmark", "check", str(edited_labels(
         w, "labels-noscene", lambda l: l.pop("scene", None)))], expect="ok"))
     add(Attack("benchmark check: a mesh shape without its mesh", lambda w: ["benchmark", "check", str(edited_labels(
-        w, "labels-mesh", lambda l: [i["class"].update(shape="bunny") for i in l["images"]
-                                     if i["split"] == "test"][:1]))]))
+        w, "labels-mesh", lambda l: next(i for i in l["images"] if i["split"] == "test")["class"].update(
+            shape="bunny")))]))
     add(Attack("benchmark check: labels.json not JSON", lambda w: ["benchmark", "check", str(w / "badjson")],
                setup=make_file("badjson/labels.json", "{")))
     add(Attack("benchmark check: an empty folder", lambda w: ["benchmark", "check", str(w / "empty")],
