@@ -45,11 +45,25 @@ def test_optimisation_lowers_the_loss_substantially(tiny_model):
     assert final < 0.5 * losses[0]
 
 
-def test_a_microfacet_fit_renders_with_its_lobe_everywhere(tiny_dataset, tmp_path):
-    """fit --observation microfacet: the model folder's scene (and its scene.xml) carry the GGX lobe, so
-    every later render of the model (infer, evaluate, the noise stage) uses it; the fit still learns."""
+def test_the_observation_model_picks_the_lobe_of_every_render_of_the_model():
+    """fit --observation microfacet gives the fitted world the GGX lobe (the scene a model folder
+    renders with everywhere: infer, evaluate, the noise stage), phong and hemisphere Phong's; reproduce
+    refuses an observation model it does not know."""
     from mitsuba_p3.errors import ConfigError
+    from mitsuba_p3.fit.scene_opt import SceneFit, initial_globals
     from mitsuba_p3.reproduce import ReproduceConfig
+
+    for observation, lobe in (("phong", "phong"), ("hemisphere", "phong"), ("microfacet", "ggx")):
+        config = SceneOptConfig(**TINY_FIT, observation=observation)
+        assert SceneFit(initial_globals(config), {}, [], 0.0, {}, {"observation": observation}).scene().lobe == lobe
+    assert SceneFit(initial_globals(SceneOptConfig(**TINY_FIT)), {}, [], 0.0, {}, {}).scene().lobe == "phong"
+    with pytest.raises(ConfigError, match="observation"):
+        ReproduceConfig(observation="pathtraced")
+
+
+@pytest.mark.slow
+def test_a_microfacet_fit_learns_and_keeps_its_lobe_in_the_model_folder(tiny_dataset, tmp_path):
+    """The whole scene stage with the GGX lobe: it learns, and the folder's scene and scene.xml carry the lobe."""
     from mitsuba_p3.scene import load_scene
 
     model = fit_model(tiny_dataset, tmp_path / "ggx", stages=("scene",),
@@ -57,8 +71,6 @@ def test_a_microfacet_fit_renders_with_its_lobe_everywhere(tiny_dataset, tmp_pat
     assert model.scene().lobe == "ggx" and load_scene(model.root / "scene.xml").lobe == "ggx"
     losses = [float(row.split(",")[-1]) for row in (model.root / "loss_curve.csv").read_text().splitlines()[1:]]
     assert losses[-1] < 0.5 * losses[0]
-    with pytest.raises(ConfigError, match="observation"):
-        ReproduceConfig(observation="pathtraced")
 
 
 def _phong_dataset(folder, truth, materials, n_images=12, seed=0):

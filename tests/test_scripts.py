@@ -178,7 +178,7 @@ def test_reproduce_generates_at_the_asked_resolution(tmp_path, monkeypatch):
 
 @pytest.mark.slow
 def test_train_baselines_trains_scores_and_resumes(tmp_path):
-    """scripts/train_baselines.py trains a baseline to its cap, scores it into the run folder, and a
+    """mitsuba-p3 baseline train-all trains a baseline to its cap, scores it into the run folder, and a
     rerun resumes: nothing is trained or scored again."""
     import subprocess
     import sys
@@ -187,8 +187,8 @@ def test_train_baselines_trains_scores_and_resumes(tmp_path):
     from mitsuba_p3.benchmarks.generate import generate
 
     generate("fsclvr", tmp_path / "data" / "fsclvr", seed=2, size="small", resolution=(30, 40), spp=4)
-    script = Path(__file__).resolve().parents[1] / "scripts" / "train_baselines.py"
-    command = [sys.executable, str(script), "--data", str(tmp_path / "data"), "--out", str(tmp_path / "out"),
+    command = [sys.executable, "-m", "mitsuba_p3.cli", "baseline", "train-all", "--data", str(tmp_path / "data"),
+               "--out", str(tmp_path / "out"),
                "--benchmarks", "fsclvr", "--methods", "protonets", "--resolutions", "56", "--iterations", "4",
                "--episodes", "3"]
     first = subprocess.run(command, capture_output=True, text=True, timeout=900)

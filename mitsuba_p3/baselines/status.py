@@ -1,6 +1,6 @@
 """How far each baseline's training got, from its checkpoint alone: one row per training folder.
 
-A baseline trains to early stopping over several working sessions (``scripts/train_baselines.py``
+A baseline trains to early stopping over several working sessions (``mitsuba-p3 baseline train-all``
 resumes its checkpoint), so the question "where is it?" comes back each session. The answer is in
 the folder: the checkpoint says the iterations done, the validation accuracy at every checkpoint,
 the kept (best) iteration and whether training stopped; a score file, if the kept network has been
@@ -10,7 +10,7 @@ draws every baseline's validation accuracy against its iterations in one figure 
 ``learning_curve.png`` has its own, with the training loss).
 
 Scores are looked up in the folder's ``scores.json`` and, with ``runs``, in
-``RUNS/V/baselines/METHOD-R.json`` (where ``train_baselines.py`` writes them; V is the folder's name
+``RUNS/V/baselines/METHOD-R.json`` (where ``mitsuba-p3 baseline train-all`` writes them; V is the folder's name
 up to ``-METHOD-R``, the script's naming). A score of an earlier kept iteration than the
 checkpoint's is stale and not shown.
 """

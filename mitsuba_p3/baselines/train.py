@@ -498,3 +498,63 @@ def evaluate_baseline(model_dir: str | Path, dataset_dir: str | Path, run_dir: s
               "early_stopped": state.stopped, "accuracy": accuracy}
     atomic_json(score_file(run_dir, config), result)
     return result
+
+
+def train_all(data: str | Path, out: str | Path, benchmarks=("fsclvr", "dark", "room"), methods=("protonets", "maml"),
+              resolutions=(56, 84), episodes: int = 100, patience: int | None = None, iterations: int | None = None,
+              rescore: bool = False, progress_bar=None):
+    """Every baseline of the paper's table, trained to early stopping and scored, resumable; yields one
+    record per finished baseline (iterations, kept iteration, best validation accuracy, test accuracy
+    per benchmark it is scored on).
+
+    For each benchmark, method and input size: meta-train on the benchmark's train classes
+    (checkpoints in ``out/baselines/V-METHOD-R``), then score the kept network on the test episodes of
+    the benchmark (and of ood for fsclvr's networks: :func:`scored_benchmarks`) into ``out/runs/T``, the
+    run folders of ``mitsuba-p3 reproduce``. A finished training is not repeated, an unfinished one
+    continues from its checkpoint, and a score is kept unless ``rescore`` or the kept network changed.
+    ``progress_bar(name) -> (context, update)`` shows each training and scoring."""
+    data, out = Path(data), Path(out)
+    missing = [b for b in benchmarks if not (data / b / "labels.json").is_file()]
+    if missing:
+        raise BaselineError(f"no benchmark folder for {', '.join(missing)} in {data} "
+                            f"(mitsuba-p3 benchmark generate V --out {data}/V)")
+    bar_of = progress_bar or (lambda name: (_Quiet(), None))
+    for benchmark in benchmarks:
+        for method in methods:
+            for resolution in resolutions:
+                name = f"{benchmark}-{method}-{resolution}"
+                trained = out / "baselines" / name
+                config = TrainConfig(method=method, resolution=int(resolution),
+                                     iterations=iterations or DEFAULT_ITERATIONS[method],
+                                     **({"patience": patience} if patience is not None else {}))
+                bar, update = bar_of(name)
+                with bar:
+                    state = train_baseline(data / benchmark, trained, config, progress=update)
+                scored = {}
+                for target in [t for t in scored_benchmarks(benchmark) if (data / t).is_dir()]:
+                    result_file = score_file(out / "runs" / target, config)
+                    if rescore or not result_file.exists() or _scored_before(result_file, state):
+                        bar, update = bar_of(f"{name}: scoring on {target}")
+                        with bar:
+                            evaluate_baseline(trained, data / target, out / "runs" / target, episodes, progress=update)
+                    result = json.loads(result_file.read_text())
+                    scored[target] = {k: round(100 * v["mean"], 1) for k, v in result["accuracy"].items()}
+                    if target == benchmark:     # the training folder keeps its own score (baseline status reads it)
+                        atomic_json(trained / "scores.json", result)
+                yield {"baseline": name, "iterations": state.iteration, "early_stopped": state.stopped,
+                       "kept_iteration": state.kept_iteration, "best_validation_accuracy": state.best_validation,
+                       "test_accuracy": scored}
+
+
+class _Quiet:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def _scored_before(result_file: Path, state: Checkpoint) -> bool:
+    """A score written for an earlier checkpoint than the one training has kept since."""
+    return json.loads(result_file.read_text()).get("kept_iteration") != state.kept_iteration
+

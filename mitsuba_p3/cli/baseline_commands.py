@@ -51,6 +51,36 @@ def baseline_train(
                            "learning_curve": str(out / "learning_curve.png")}, indent=2))
 
 
+@baseline_app.command("train-all")
+def baseline_train_all(
+    data: Path = typer.Option(Path("data"), "--data", help="Folder of the benchmark folders (data/fsclvr, ...)."),
+    out: Path = typer.Option(Path("out/reproduction"), "--out", help="The reproduction's folder: trainings in "
+                             "OUT/baselines, scores in OUT/runs (reproduce's default; resumes)."),
+    benchmarks: str = typer.Option("fsclvr,dark,room", help="Comma-separated benchmarks (fsclvr's networks are "
+                                   "also scored on ood)."),
+    methods: str = typer.Option("protonets,maml", help="Comma-separated: protonets, maml."),
+    resolutions: str = typer.Option("56,84", help="Comma-separated input sizes: 56, 84."),
+    episodes: int = typer.Option(100, help="Test episodes per setting."),
+    patience: Optional[int] = typer.Option(None, help="Checkpoints without a better validation accuracy before "
+                                           "a training stops (default 10)."),
+    iterations: Optional[int] = typer.Option(None, help="Cap on meta-iterations (default 20000)."),
+    rescore: bool = typer.Option(False, "--rescore", help="Score again where a score exists."),
+) -> None:
+    """Every baseline of the paper's table, trained to early stopping and scored into the reproduction's run
+    folders, resumable: a killed run continues where it stopped. Prints one JSON line per baseline."""
+    from ..baselines.train import train_all
+    from ..files import refuse_protected_folder
+
+    sizes = [int(r) for r in resolutions.split(",") if r.strip()]
+    if not sizes or any(r not in (56, 84) for r in sizes):
+        raise MitsubaP3Error(f"--resolutions must be 56 and/or 84 (the paper's inputs); got {resolutions!r}")
+    refuse_protected_folder(out, "mitsuba-p3 baseline train-all")
+    for record in train_all(data, out, [b.strip() for b in benchmarks.split(",") if b.strip()],
+                            [m.strip() for m in methods.split(",") if m.strip()], sizes, episodes, patience,
+                            iterations, rescore, progress_bar=progress_bar):
+        typer.echo(json.dumps(record), nl=True)
+
+
 @baseline_app.command("evaluate")
 def baseline_evaluate(
     trained: Path = typer.Argument(..., help="Training folder (mitsuba-p3 baseline train)."),
@@ -95,7 +125,7 @@ def baseline_frozen(
 def baseline_status(
     trained: list[Path] = typer.Argument(..., help="Training folders, or folders of them (e.g. results/baselines)."),
     runs: Optional[Path] = typer.Option(None, help="The reproduction's run folders (OUT/runs), where "
-                                        "train_baselines.py writes the test scores."),
+                                        "baseline train-all writes the test scores."),
     figure: Optional[Path] = typer.Option(None, help="Also draw every baseline's validation curve in one PNG."),
 ) -> None:
     """Where each baseline's training is (iterations, kept iteration, best validation accuracy, early
