@@ -66,14 +66,15 @@ def test_a_mistake_on_ones_own_data_is_refused_in_one_line(work, attack):
 @pytest.fixture(scope="module")
 def work_with_models(source, tmp_path_factory):
     """The scratch folder of the script's full run: the tiny data set, another one, a model fitted to
-    the first and a copy of it in another folder."""
+    the benchmark they were cut from (as the script copies a user's model: another fit than one of the
+    tiny set, so that fitting the tiny set into it is a second data set) and a copy of it in another folder."""
     from mitsuba_p3.fit.model import fit_model
     from mitsuba_p3.fit.scene_opt import SceneOptConfig
 
     folder = tmp_path_factory.mktemp("attack-models")
     attack_cli.tiny_dataset(source, folder / "data")
     attack_cli.tiny_dataset(source, folder / "other-data", reverse=True)
-    fit_model(folder / "data", folder / "model", scene_config=SceneOptConfig(
+    fit_model(source, folder / "model", scene_config=SceneOptConfig(
         resolution=(30, 40), pattern_size=16, epochs=2, material_passes=2, global_passes=2, refine_materials=False))
     shutil.copytree(folder / "model", folder / "other-model")
     (folder / "other-model" / "note.txt").write_text("another model")

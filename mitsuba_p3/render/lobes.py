@@ -17,7 +17,7 @@ times the cosine, as Mitsuba's ``roughconductor`` evaluates it at a light:
     D(h) = a^2 / (pi ((n.h)^2 (a^2 - 1) + 1)^2),   G1(x) = 2 n.x / (n.x + sqrt(a^2 + (1 - a^2) (n.x)^2)).
 
 Its roughness is tied to the shininess by the usual Phong-to-microfacet correspondence
-a^2 = 2 / (alpha + 2) (Walter et al., eq. 25: the Beckmann width whose lobe matches
+a^2 = 2 / (alpha + 2) (Walter et al. 2007: the Beckmann width whose lobe matches
 max(0, n.h)^alpha near its peak), so ``shininess`` keeps its meaning as the lobe's
 sharpness, and the priors, the fit's shininess grid and every sampler move are unchanged.
 What the lobe changes is its shape: GGX's long tails (a rough metal's broad sheen around a

@@ -33,8 +33,7 @@ import drjit as dr  # noqa: E402  (after the backend has chosen libLLVM)
 from .drjit_params import DrParams, gradients_of, to_drjit, to_drjit_pattern  # noqa: E402
 from . import hemisphere  # noqa: E402
 from .lobes import ggx_term  # noqa: E402
-from .phong import half_vector  # noqa: E402
-from .phong import SHADOW_OFFSET, phong_terms, pixel_centre_rays  # noqa: E402
+from .phong import SHADOW_OFFSET, half_vector, phong_terms, pixel_centre_rays  # noqa: E402
 
 _BACKEND = jit_backend()  # renders open a fresh scope of the chosen variant's backend
 
