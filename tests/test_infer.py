@@ -813,3 +813,24 @@ def test_an_empty_floor_is_answered_as_nothing_and_an_object_as_one(fitted):
         warnings = range_warnings(posterior, fitted, {"log_bayes_factor_object": factors[name]})
         assert any("no object" in w for w in warnings) == (name == "empty"), (name, warnings)
     assert factors["empty"] < 0 < factors["object"], factors
+
+
+def test_runs_that_lost_the_object_are_counted_and_warned_about():
+    """A run whose best final particle is no better than the empty floor lost the object (its equal
+    likelihoods took it straight to lambda = 1): counted per hypothesis, and a hypothesis all of whose
+    runs lost it is named in infer's warnings."""
+    from types import SimpleNamespace
+
+    from mitsuba_p3.infer.report import lost_hypotheses
+    from mitsuba_p3.infer.smc import mark_lost_runs
+
+    # the best run reaches 262 from the floor's -200; a run under -200 + 0.1 * 462 = -153.8 lost the object
+    loglik = np.array([[150.0, 160.0], [-200.0, -196.0], [-201.0, -200.2], [262.0, 100.0], [-160.0, -199.9]])
+    rows = SimpleNamespace(index=np.array([0, 1, 1, 2, 2]), state=SimpleNamespace(loglikelihood=loglik))
+    space = SimpleNamespace(names=("sphere", "cube", "cylinder"))
+    statistics = {"empty_log_likelihood": -200.0,
+                  "hypotheses": {n: {"runs": r} for n, r in zip(space.names, (1, 2, 2))}}
+    mark_lost_runs(statistics, rows, space)
+    assert [statistics["hypotheses"][n]["lost_runs"] for n in space.names] == [0, 2, 1]
+    posterior = SimpleNamespace(statistic=lambda name, default=None: statistics.get(name, default))
+    assert lost_hypotheses(posterior) == ["cube"]

@@ -58,6 +58,13 @@ def posterior_misfit(posterior: Posterior, fitted: FittedModel, observed: np.nda
 RANGE_SIGMAS = 3.29
 
 
+def lost_hypotheses(posterior: Posterior) -> list[str]:
+    """The hypotheses every one of whose SMC runs lost the object (:func:`~mitsuba_p3.infer.smc.mark_lost_runs`)."""
+    hypotheses = posterior.statistic("hypotheses") or {}
+    return [name for name, h in hypotheses.items()
+            if isinstance(h, dict) and h.get("runs") and h.get("lost_runs", 0) >= h["runs"]]
+
+
 def range_warnings(posterior: Posterior, fitted: FittedModel, diagnostics: dict) -> list[str]:
     """What says the answer is about something the model cannot explain: the empty floor explains the
     image better than one object (an SMC posterior's log Bayes factor < 0), or the object's size lies
@@ -67,6 +74,10 @@ def range_warnings(posterior: Posterior, fitted: FittedModel, diagnostics: dict)
     if factor is not None and np.isfinite(factor) and factor < 0:
         warnings.append(f"the empty floor explains this image better than one object (log Bayes factor "
                         f"{factor:.1f}): there may be no object here")
+    lost = diagnostics.get("lost_hypotheses") or []
+    if lost:
+        warnings.append(f"every run of {', '.join(lost)} explained the image hardly better than the empty floor (it lost the object): "
+                        "its weight says nothing about that shape; sample again with more particles or another seed")
     config = fitted.prior.config
     size = np.median(posterior.draws("scale").reshape(-1, 3), axis=0)
     far = np.abs(np.log(size) - config.scale_log_mu) / config.scale_log_sigma
@@ -97,7 +108,8 @@ def write_report(posterior: Posterior, fitted: FittedModel, out: str | Path, ren
                        "temperatures": posterior.statistic("temperatures"),
                        "forced": posterior.statistic("forced"),
                        # one object against the empty floor (smc.object_evidence): < 0, nothing explained
-                       "log_bayes_factor_object": posterior.statistic("log_bayes_factor_object")}
+                       "log_bayes_factor_object": posterior.statistic("log_bayes_factor_object"),
+                       "lost_hypotheses": lost_hypotheses(posterior)}
     else:
         diagnostics = {"max_r_hat": float(summary["r_hat"].max()), "min_ess_bulk": float(summary["ess_bulk"].min())}
     attrs = dict(posterior.idata.posterior.attrs)
