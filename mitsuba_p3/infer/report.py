@@ -76,8 +76,9 @@ def range_warnings(posterior: Posterior, fitted: FittedModel, diagnostics: dict)
                         f"{factor:.1f}): there may be no object here")
     lost = diagnostics.get("lost_hypotheses") or []
     if lost:
-        warnings.append(f"every run of {', '.join(lost)} explained the image hardly better than the empty floor (it lost the object): "
-                        "its weight says nothing about that shape; sample again with more particles or another seed")
+        warnings.append(f"every run of {', '.join(lost)} explained the image hardly better than the empty floor "
+                        "(it lost the object): its weight says nothing about that shape; sample again with more "
+                        "particles or another seed")
     config = fitted.prior.config
     size = np.median(posterior.draws("scale").reshape(-1, 3), axis=0)
     far = np.abs(np.log(size) - config.scale_log_mu) / config.scale_log_sigma
