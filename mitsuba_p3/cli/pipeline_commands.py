@@ -146,7 +146,8 @@ def infer(
 
 @app.command()
 def sbc(
-    model: Path = typer.Option(..., "--model", help="Fitted-model folder (mitsuba-p3 fit) whose own renders are simulated."),
+    model: Path = typer.Option(..., "--model", help="Fitted-model folder (mitsuba-p3 fit) whose own renders "
+                                                    "are simulated."),
     out: Path = typer.Option(Path("out/sbc"), "--out", help="Report folder: sbc.json, sbc.png, calibration.png and "
                                                           "cache.npz, from which a killed run resumes."),
     images: int = typer.Option(200, help="Simulations (scenes drawn from the model's prior)."),
@@ -242,7 +243,9 @@ def evaluate(
 def reproduce(
     data: Path = typer.Option(Path("data"), help="Folder of benchmark folders (data/fsclvr, ...) and data/models; "
                                                  "what is missing is generated and fitted."),
-    out: Path = typer.Option(Path("out/reproduction"), help="Tables, timing log and one run folder per benchmark (resumes); results/ holds only the frozen snapshots the docs cite."),
+    out: Path = typer.Option(Path("out/reproduction"), help="Tables, timing log and one run folder per benchmark "
+                                                            "(resumes); results/ holds only the frozen snapshots "
+                                                            "the docs cite."),
     benchmarks: str = typer.Option("fsclvr,room,dark,ood", help="Comma-separated benchmarks."),
     likelihoods: str = typer.Option("p3,np3", help="Comma-separated: p3, np3."),
     episodes: int = typer.Option(100, help="Episodes per N-way K-shot setting."),
