@@ -100,7 +100,9 @@ def test_posterior_recovers_a_phong_scene(fitted, observed, tmp_path):
     assert estimate["shape"] == "cube"
     import arviz as az
 
-    hdi = az.hdi(posterior.idata, hdi_prob=0.9, var_names=["shift", "scale"])
+    # a calibrated posterior's 90% intervals miss one of five coordinates in about 40% of seeds (0.9^5): the
+    # test asks for 99% ones (about 5%), which a run that missed the truth still fails
+    hdi = az.hdi(posterior.idata, hdi_prob=0.99, var_names=["shift", "scale"])
     for name in ("shift", "scale"):
         low, high = hdi[name].values[..., 0], hdi[name].values[..., 1]
         assert np.all((low <= TRUTH[name]) & (TRUTH[name] <= high)), (name, low, high)
