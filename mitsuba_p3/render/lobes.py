@@ -34,12 +34,14 @@ from __future__ import annotations
 
 import math
 
-LOBES = ("phong", "ggx")
+from ..scene.model import LOBES  # noqa: F401  (the names; the scene validates them)
+
 # the fit's name of each lobe's observation model (``mitsuba-p3 fit --observation``)
 OBSERVATION_LOBES = {"phong": "phong", "hemisphere": "phong", "microfacet": "ggx"}
 
 
 def check_lobe(lobe: str) -> str:
+    """``lobe`` if it is one of :data:`LOBES`, else a :class:`SceneError` naming them."""
     from ..errors import SceneError
 
     if lobe not in LOBES:

@@ -76,6 +76,9 @@ def _number(value, what: str, low=-np.inf, high=np.inf) -> float:
     return float(_vector(value, 1, what, low, high)[0])
 
 
+# the specular lobes a scene's surfaces may have (render/lobes.py evaluates them): Phong's highlight or GGX microfacets
+LOBES = ("phong", "ggx")
+
 @dataclass
 class Camera:
     """Pinhole camera; BENCHMARK.md's protocol camera by default (vertical fov)."""
@@ -182,9 +185,8 @@ class Scene:
         self.light_radius = _number(self.light_radius, "light radius", 0.0)
         self.sky = _vector(self.sky, 3, "sky radiance", 0.0)
         self.ground = _vector(self.ground, 3, "ground radiance", 0.0)
-        from ..render.lobes import check_lobe
-
-        check_lobe(self.lobe)
+        if self.lobe not in LOBES:
+            raise SceneError(f"unknown specular lobe {self.lobe!r}; choose one of {', '.join(LOBES)}")
         if self.lobe != "phong" and (np.any(self.sky > 0) or np.any(self.ground > 0)):
             raise SceneError(f"the sky and ground terms assume the Phong lobe; the {self.lobe} lobe has none")
         self.floor.material.validate("floor")
