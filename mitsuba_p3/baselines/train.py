@@ -518,7 +518,9 @@ def train_all(data: str | Path, out: str | Path, benchmarks=("fsclvr", "dark", "
     if missing:
         raise BaselineError(f"no benchmark folder for {', '.join(missing)} in {data} "
                             f"(mitsuba-p3 benchmark generate V --out {data}/V)")
-    bar_of = progress_bar or (lambda name: (_Quiet(), None))
+    from contextlib import nullcontext
+
+    bar_of = progress_bar or (lambda name: (nullcontext(), None))
     for benchmark in benchmarks:
         for method in methods:
             for resolution in resolutions:
@@ -544,14 +546,6 @@ def train_all(data: str | Path, out: str | Path, benchmarks=("fsclvr", "dark", "
                 yield {"baseline": name, "iterations": state.iteration, "early_stopped": state.stopped,
                        "kept_iteration": state.kept_iteration, "best_validation_accuracy": state.best_validation,
                        "test_accuracy": scored}
-
-
-class _Quiet:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
 
 
 def _scored_before(result_file: Path, state: Checkpoint) -> bool:
