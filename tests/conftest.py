@@ -46,3 +46,12 @@ def random_object_params(rng: np.random.Generator, batch: int) -> dict[str, np.n
         "specular": rng.uniform(0.0, 0.8, batch).astype(np.float32),
         "shininess": rng.uniform(2.0, 40.0, batch).astype(np.float32),
     }
+
+
+def tiny_benchmark(folder: Path, seed: int) -> Path:
+    """The small fsclvr benchmark at 30x40 with 8 samples per pixel, generated into ``folder`` (seconds)."""
+    from mitsuba_p3.benchmarks.generate import generate
+
+    generate("fsclvr", folder, seed=seed, size="small", resolution=(30, 40), spp=8)
+    return folder
+

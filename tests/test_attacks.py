@@ -39,11 +39,9 @@ SLOW = [a for a in ATTACKS if a.name not in FAST_NAMES]
 
 @pytest.fixture(scope="module")
 def source(tmp_path_factory):
-    from mitsuba_p3.benchmarks.generate import generate
+    from .conftest import tiny_benchmark
 
-    folder = tmp_path_factory.mktemp("attack-source") / "fsclvr"
-    generate("fsclvr", folder, seed=3, size="small", resolution=(30, 40), spp=8)
-    return folder
+    return tiny_benchmark(tmp_path_factory.mktemp("attack-source") / "fsclvr", seed=3)
 
 
 @pytest.fixture(scope="module")

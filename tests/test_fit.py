@@ -25,9 +25,9 @@ TINY_FIT = dict(resolution=(30, 40), pattern_size=16, epochs=2, material_passes=
 
 @pytest.fixture(scope="module")
 def tiny_dataset(tmp_path_factory):
-    out = tmp_path_factory.mktemp("fit") / "fsclvr"
-    generate("fsclvr", out, seed=9, size="small", resolution=(30, 40), spp=8)
-    return out
+    from .conftest import tiny_benchmark
+
+    return tiny_benchmark(tmp_path_factory.mktemp("fit") / "fsclvr", seed=9)
 
 
 @pytest.fixture(scope="module")

@@ -34,19 +34,10 @@ from __future__ import annotations
 
 import math
 
-from ..scene.model import LOBES  # noqa: F401  (the names; the scene validates them)
+from ..scene.model import LOBES, check_lobe  # noqa: F401  (the names and their check live with the scene)
 
 # the fit's name of each lobe's observation model (``mitsuba-p3 fit --observation``)
 OBSERVATION_LOBES = {"phong": "phong", "hemisphere": "phong", "microfacet": "ggx"}
-
-
-def check_lobe(lobe: str) -> str:
-    """``lobe`` if it is one of :data:`LOBES`, else a :class:`SceneError` naming them."""
-    from ..errors import SceneError
-
-    if lobe not in LOBES:
-        raise SceneError(f"unknown specular lobe {lobe!r}; choose one of {', '.join(LOBES)}")
-    return lobe
 
 
 def sharpness(shininess):

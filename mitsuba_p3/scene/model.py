@@ -79,6 +79,13 @@ def _number(value, what: str, low=-np.inf, high=np.inf) -> float:
 # the specular lobes a scene's surfaces may have (render/lobes.py evaluates them): Phong's highlight or GGX microfacets
 LOBES = ("phong", "ggx")
 
+
+def check_lobe(lobe: str) -> str:
+    """``lobe`` if it is one of :data:`LOBES`, else a :class:`SceneError` naming them."""
+    if lobe not in LOBES:
+        raise SceneError(f"unknown specular lobe {lobe!r}; choose one of {', '.join(LOBES)}")
+    return lobe
+
 @dataclass
 class Camera:
     """Pinhole camera; BENCHMARK.md's protocol camera by default (vertical fov)."""
@@ -185,8 +192,7 @@ class Scene:
         self.light_radius = _number(self.light_radius, "light radius", 0.0)
         self.sky = _vector(self.sky, 3, "sky radiance", 0.0)
         self.ground = _vector(self.ground, 3, "ground radiance", 0.0)
-        if self.lobe not in LOBES:
-            raise SceneError(f"unknown specular lobe {self.lobe!r}; choose one of {', '.join(LOBES)}")
+        check_lobe(self.lobe)
         if self.lobe != "phong" and (np.any(self.sky > 0) or np.any(self.ground > 0)):
             raise SceneError(f"the sky and ground terms assume the Phong lobe; the {self.lobe} lobe has none")
         self.floor.material.validate("floor")
