@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
-from mitsuba_p3.benchmarks.generate import generate
 from mitsuba_p3.errors import MitsubaP3Error
 from mitsuba_p3.fit.features import LAYERS, IMAGENET_MEAN, IMAGENET_STD, select_channels, vgg16_weights, vgg_features
 from mitsuba_p3.fit.model import FittedModel, fit_model
