@@ -179,6 +179,7 @@ def describe() -> dict:
         "threads": dr.thread_count(),
         "cpu_cores": os.cpu_count(),
         "cpu": platform.processor() or platform.machine(),
+        "jax_compilation_cache": os.environ.get("JAX_COMPILATION_CACHE_DIR"),
     }
     out.update(gpu())
     return out

@@ -3,7 +3,9 @@
 For each particle count, the first image is sampled once to compile (not timed), then every image
 is sampled and timed; prints the machine (variant, CPU cores, GPU, JAX's backend) and, per particle
 count, the median and each image's seconds, modal shape and the island gap. ``--truth`` (a JSON
-list of {"class": {"shape": ...}}) adds the share of right shapes.
+list of {"class": {"shape": ...}}) adds the share of right shapes; ``--set smc.FIELD=VALUE`` changes the
+sampler as on ``mitsuba-p3 infer``; ``--profile FILE`` writes where the last image's seconds went
+(cProfile, the 40 costliest calls by cumulative time).
 
     python scripts/bench_posterior.py MODEL IMAGE... [--renderer jax] [--particles 64,256] [--truth T]
 """
@@ -22,7 +24,10 @@ def main() -> None:
     parser.add_argument("--renderer", default="jax", help="jax (no callback) or mitsuba")
     parser.add_argument("--particles", default="64", help="comma-separated SMC particles per hypothesis")
     parser.add_argument("--truth", default=None)
+    parser.add_argument("--set", dest="settings", action="append", default=[], help="smc.FIELD=VALUE")
+    parser.add_argument("--profile", default=None, help="write the last image's profile here")
     args = parser.parse_args()
+    from mitsuba_p3.cli.settings import apply_settings
     from mitsuba_p3.fit.model import FittedModel
     from mitsuba_p3.images import load_observation
     from mitsuba_p3.infer.likelihood import DEFAULT_NOISE
@@ -34,9 +39,10 @@ def main() -> None:
     likelihood = default_likelihood(fitted, "p3", None, DEFAULT_NOISE)
     images = [load_observation(p) for p in args.images]
     truth = [t["class"]["shape"] for t in json.load(open(args.truth))] if args.truth else None
-    report = {"machine": where(), "renderer": args.renderer, "noise": DEFAULT_NOISE, "images": len(images), "runs": {}}
+    report = {"machine": where(), "renderer": args.renderer, "noise": DEFAULT_NOISE, "images": len(images),
+              "settings": args.settings, "runs": {}}
     for particles in (int(p) for p in args.particles.split(",")):
-        config = SMCConfig(particles=particles)
+        config = apply_settings(SMCConfig(particles=particles), args.settings)
         start = time.perf_counter()
         try:
             infer_image(fitted, images[0], likelihood, config, renderer=args.renderer)
@@ -46,9 +52,22 @@ def main() -> None:
             continue
         warm = time.perf_counter() - start
         rows = []
-        for image in images:
+        for number, image in enumerate(images):
+            profile = None
+            if args.profile and number == len(images) - 1:
+                import cProfile
+
+                profile = cProfile.Profile()
+                profile.enable()
             start = time.perf_counter()
             posterior = infer_image(fitted, image, likelihood, config, renderer=args.renderer)
+            if profile is not None:
+                import pstats
+
+                profile.disable()
+                with open(args.profile, "a") as stream:
+                    stream.write(f"== {particles} particles per hypothesis\n")
+                    pstats.Stats(profile, stream=stream).sort_stats("cumulative").print_stats(40)
             rows.append({"seconds": round(time.perf_counter() - start, 3), "shape": posterior.estimate()["shape"],
                          "island_gap": posterior.statistic("island_gap")})
         entry = {"first_call_seconds": round(warm, 2),

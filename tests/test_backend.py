@@ -129,3 +129,22 @@ def test_a_gpu_machine_without_libllvm_runs_the_cuda_variant(monkeypatch):
         backend.llvm_path()
     monkeypatch.setenv(backend.VARIANT_ENV, "cuda_ad_rgb")
     assert backend.llvm_path() is None
+
+
+@pytest.mark.parametrize("setting, expected", [(None, "{home}/.cache/mitsuba-p3/jax"), ("off", "None"),
+                                               ("{home}/elsewhere", "{home}/elsewhere")])
+def test_jax_compiles_once_per_machine_into_a_cache_one_can_move_or_turn_off(tmp_path, setting, expected):
+    """Importing the package points JAX's persistent compilation cache at ~/.cache/mitsuba-p3/jax (so a
+    second command does not compile the sampler again), MITSUBA_P3_JAX_CACHE moves it or turns it off,
+    and a cache the user gave JAX is kept."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("MITSUBA_P3_JAX_CACHE", "JAX_COMPILATION_CACHE_DIR", "XDG_CACHE_HOME")}
+    env["HOME"] = str(tmp_path)
+    if setting is not None:
+        env["MITSUBA_P3_JAX_CACHE"] = setting.format(home=tmp_path)
+    show = "import mitsuba_p3, os; print(os.environ.get('JAX_COMPILATION_CACHE_DIR'))"
+    out = subprocess.run([sys.executable, "-c", show], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == expected.format(home=tmp_path)
+    env["JAX_COMPILATION_CACHE_DIR"] = str(tmp_path / "mine")
+    out = subprocess.run([sys.executable, "-c", show], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == str(tmp_path / "mine")

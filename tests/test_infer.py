@@ -545,6 +545,68 @@ def test_persistent_sampling_estimates_the_evidence_from_its_pool():
     assert most > 1.0
 
 
+class _GaussianPoseCore:
+    """A stand-in posterior core whose log likelihood is a Gaussian in the pose coordinates of z: its
+    tempered target, the fitted prior given a hypothesis times that Gaussian, has moments that
+    importance sampling from the prior gives exactly."""
+
+    def __init__(self, prior, centre, width):
+        self.prior, self.centre, self.width = prior, centre, width
+
+    def log_likelihood(self, z, observation):
+        from mitsuba_p3.infer.smc_moves import POSE_MASK
+
+        return -0.5 * (((z - self.centre) / self.width) ** 2 * POSE_MASK).sum()
+
+
+def test_gradient_move_keeps_the_tempered_target(fitted):
+    """The MALA sweep over the pose (finite-difference likelihood gradient, Hastings ratio of the
+    forward and reverse proposals) leaves prior x likelihood invariant: posterior draws moved 15
+    times keep the pose's posterior mean and sd (importance sampling from 200,000 prior draws gives
+    them), at MALA's optimal step, where the same sweep with its proposal ratio dropped shrinks
+    every sd by a quarter; and it moves most particles."""
+    import jax
+    import jax.numpy as jnp
+
+    from mitsuba_p3.infer.hypotheses import hypotheses_of, initial_particles
+    from mitsuba_p3.infer.smc_moves import POSE_MASK, gradient_step, kernels, pose_directions
+
+    prior, rng = fitted.prior, np.random.default_rng(0)
+    space = hypotheses_of(prior, False)
+    draws = initial_particles(prior, rng, 200_000, space)[:1, :, :]              # the sphere's prior
+    pose = POSE_MASK > 0
+    centre = np.where(pose, draws[0].mean(axis=0) + 0.5 * draws[0].std(axis=0), 0.0).astype(np.float32)
+    core = _GaussianPoseCore(prior, jnp.asarray(centre), jnp.asarray(np.where(pose, draws[0].std(axis=0), 1.0),
+                                                                        jnp.float32))
+    moves = kernels(core, False, 0)
+    index = jnp.zeros(1, jnp.int32)
+    loglik, logprior = (np.asarray(a) for a in moves.score(jnp.asarray(draws), index, None))
+    weights = np.exp(loglik[0] - loglik[0].max())
+    weights /= weights.sum()
+    mean = weights @ draws[0][:, pose]
+    sd = np.sqrt(weights @ (draws[0][:, pose] - mean) ** 2)
+    start = draws[:, rng.choice(draws.shape[1], 4000, p=weights)]
+    particles = tuple(jnp.asarray(a) for a in (start, *moves.score(jnp.asarray(start), index, None)))
+    directions = jnp.asarray(pose_directions(start))
+    step = jnp.asarray(gradient_step(np.ones(1)))
+    moved = 0.0
+    for i in range(15):
+        particles, accepted = moves.gradient(jax.random.PRNGKey(i), particles, index, jnp.ones(1), directions, step,
+                                             None)
+        moved += float(accepted[0]) / 15
+    end = np.asarray(particles[0])[0][:, pose]
+    assert moved > 0.3
+    np.testing.assert_allclose(end.mean(axis=0), mean, atol=0.1 * sd.max())
+    np.testing.assert_allclose(end.std(axis=0), sd, rtol=0.1)
+    np.testing.assert_allclose(particles[1], loglik_of(core, particles[0]), rtol=1e-5, atol=1e-4)
+
+
+def loglik_of(core, z):
+    import jax
+
+    return jax.vmap(jax.vmap(lambda p: core.log_likelihood(p, None)))(z)
+
+
 def test_systematic_resampling_follows_the_weights():
     import jax
 
@@ -728,7 +790,8 @@ def test_sbc_ranks_are_uniform_for_an_exact_posterior_and_not_for_a_narrow_one()
 
 def test_sbc_runs_on_the_phong_model_and_resumes(fitted, tmp_path):
     """A tiny SBC of the SMC on the Phong model: ranks in range, class probabilities a distribution,
-    and a second call with the same cache continues the first run instead of redoing it."""
+    a second call with the same cache continues the first run instead of redoing it, and one under
+    other sampler settings is refused rather than mixed into it."""
     from mitsuba_p3.errors import ConfigError
     from mitsuba_p3.evaluate.sbc import run_sbc, smc_sampler
     from mitsuba_p3.infer.model import PosteriorCore
@@ -744,6 +807,8 @@ def test_sbc_runs_on_the_phong_model_and_resumes(fitted, tmp_path):
     more = run_sbc(core, lambda o, s: (calls.append(s), sample(o, s))[1], 3, 9, cache=cache)
     assert len(calls) == 1 and np.array_equal(more.ranks[:2], first.ranks)
     assert set(more.summary()["rank_uniformity_p"]) and 0 <= more.summary()["class"]["ece"] <= 1
+    with pytest.raises(ConfigError, match="other sampler settings"):
+        run_sbc(core, sample, 4, 9, cache=cache, tag='{"gradient_steps": 1}')
     with pytest.raises(ConfigError, match="power 1"):
         run_sbc(PosteriorCore(fitted, LikelihoodConfig("p3", sigma=0.03, power=0.1), "mitsuba", *RES), sample, 1, 9)
 

@@ -156,9 +156,12 @@ def sbc(
     resolution: str = typer.Option("120x160", help="HxW of the simulated images."),
     seed: int = typer.Option(0, help="Seed of the simulations and the sampler."),
     noise: str = typer.Option("fitted", help="The likelihood's power: fitted (1 / correlation area) or sandwich."),
+    settings: Optional[List[str]] = typer.Option(None, "--set", help=SET_HELP),
+    config_file: Optional[Path] = typer.Option(None, "--config", help=CONFIG_HELP),
 ) -> None:
-    """Simulation-based calibration of the default sampler on a model's own renders: do its posteriors'
-    ranks of the truth come out uniform (position, size, colour), and is its shape posterior calibrated?"""
+    """Simulation-based calibration of the SMC sampler (the default, or as --set makes it) on a model's own
+    renders: do its posteriors' ranks of the truth come out uniform (position, size, colour), and is its
+    shape posterior calibrated?"""
     from ..errors import ConfigError
     from ..evaluate.sbc import calibrate_model
     from ..files import claim_output_folder, folder_lock
@@ -168,12 +171,13 @@ def sbc(
     if images < 2 or draws < 1:
         raise ConfigError(f"--images must be at least 2 and --draws at least 1; got {images} and {draws}")
     height, width = parse_resolution(resolution)
+    config = apply_settings(SMCConfig(particles=particles), settings, config_file)
     with folder_lock(model, "mitsuba-p3 sbc", shared=True):
         claim_output_folder(out, ("cache.npz", "sbc.json"), "mitsuba-p3 sbc")
         bar, update = progress_bar("simulations")
         with bar:
             summary = calibrate_model(model, out, images, draws, particles, (height, width), seed, noise,
-                                      progress=update)
+                                      progress=update, config=config)
     shown = {k: v for k, v in summary.items() if k != "rank_counts"}
     shown["class"] = {k: v for k, v in summary["class"].items() if k != "reliability"}
     typer.echo(json.dumps(shown, indent=2))

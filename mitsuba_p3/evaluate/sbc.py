@@ -34,6 +34,8 @@ the true class beside the share of images where the mode is the truth.
 """
 from __future__ import annotations
 
+import dataclasses
+import json
 from dataclasses import dataclass
 
 import numpy as np
@@ -152,14 +154,16 @@ def simulate(core, rng: np.random.Generator) -> tuple[np.ndarray, dict, int]:
     return image.astype(np.float32), x, int(np.argmax(x["class_probabilities"]))
 
 
-def run_sbc(core, sample, images: int, draws: int, seed: int = 0, cache=None, progress=None) -> SBCResult:
+def run_sbc(core, sample, images: int, draws: int, seed: int = 0, cache=None, progress=None,
+            tag: str = "{}") -> SBCResult:
     """SBC of ``sample(observation, seed) -> (positions (L', 15), class probabilities)`` on ``images``
     simulations; ``core`` is a :class:`~mitsuba_p3.infer.model.PosteriorCore` whose likelihood has power 1
     (the model the images come from). Each image's ranks use ``draws`` of its posterior draws.
 
     Image i is simulated and sampled with seeds derived from (``seed``, i), so a run killed and started
     again with the same ``cache`` (an .npz path, rewritten atomically after every image) resumes where
-    it stopped and gives the same result."""
+    it stopped and gives the same result. ``tag`` names the sampler's settings; a cache made under other
+    settings is refused rather than continued."""
     import jax.numpy as jnp
 
     from ..errors import ConfigError
@@ -170,6 +174,10 @@ def run_sbc(core, sample, images: int, draws: int, seed: int = 0, cache=None, pr
     done = {"ranks": [], "probabilities": [], "truths": []}
     if cache is not None and cache.exists():
         with np.load(cache) as f:
+            made = str(f["tag"]) if "tag" in f else "{}"
+            if made != tag:
+                raise ConfigError(f"{cache} holds simulations of other sampler settings ({made}, not {tag}): "
+                                  "choose another output folder")
             if int(f["draws"]) == draws and int(f["seed"]) == seed:
                 done = {k: list(f[k]) for k in done}
     for i in range(len(done["ranks"]), images):
@@ -182,7 +190,7 @@ def run_sbc(core, sample, images: int, draws: int, seed: int = 0, cache=None, pr
         done["probabilities"].append(np.asarray(class_probabilities, np.float64))
         done["truths"].append(cls)
         if cache is not None:
-            atomic_npz(cache, draws=draws, seed=seed, **{k: np.array(v) for k, v in done.items()})
+            atomic_npz(cache, draws=draws, seed=seed, tag=tag, **{k: np.array(v) for k, v in done.items()})
         if progress:
             progress(i + 1, images)
     return SBCResult(np.array(done["ranks"][:images]), draws, np.array(done["probabilities"][:images]),
@@ -206,11 +214,12 @@ def smc_sampler(core, config):
 
 def calibrate_model(model_dir, out, images: int = 200, draws: int = 99, particles: int | None = None,
                     resolution: tuple[int, int] = (120, 160), seed: int = 0, noise: str = "fitted",
-                    progress=None) -> dict:
+                    progress=None, config=None) -> dict:
     """SBC of the default sampler (tempered SMC) on a fitted model's own renders: ``images`` simulations
     from its prior, each rendered with its observation model plus the likelihood's noise at the effective
     sigma / sqrt(power) that inference uses (``noise``: the power 1 / correlation area, ``fitted``, or the
-    sandwich power along the pose, ``sandwich``). Writes ``out/sbc.json``, ``sbc.png``, ``calibration.png``
+    sandwich power along the pose, ``sandwich``); ``config`` an :class:`~mitsuba_p3.infer.smc.SMCConfig`
+    other than the default (its ``particles`` then rule). Writes ``out/sbc.json``, ``sbc.png``, ``calibration.png``
     and ``cache.npz``, from which a killed run resumes; returns the summary."""
     from pathlib import Path
 
@@ -230,9 +239,14 @@ def calibrate_model(model_dir, out, images: int = 200, draws: int = 99, particle
     likelihood = LikelihoodConfig("p3", sigma=model_noise.gaussian_sigma / np.sqrt(power), shadows=model_noise.shadows)
     core = PosteriorCore(fitted, likelihood, "mitsuba", *resolution)
     out.mkdir(parents=True, exist_ok=True)
-    config = SMCConfig() if particles is None else SMCConfig(particles=particles)
-    result = run_sbc(core, smc_sampler(core, config), images, draws, seed, cache=out / "cache.npz", progress=progress)
-    summary = {"model": str(model_dir), "noise": noise, "likelihood_sigma": likelihood.sigma, **result.summary()}
+    if config is None:
+        config = SMCConfig() if particles is None else SMCConfig(particles=particles)
+    changed = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)
+               if getattr(config, f.name) != f.default and f.name != "seed"}
+    result = run_sbc(core, smc_sampler(core, config), images, draws, seed, cache=out / "cache.npz", progress=progress,
+                     tag=json.dumps(changed, sort_keys=True))
+    summary = {"model": str(model_dir), "noise": noise, "likelihood_sigma": likelihood.sigma,
+               "smc": dataclasses.asdict(config), **result.summary()}
     atomic_json(out / "sbc.json", summary)
     sbc_figures(summary, result, out / "sbc.png")
     return summary

@@ -8,6 +8,7 @@ the yaw is the circular mode.
 """
 from __future__ import annotations
 
+import functools
 import json
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -105,16 +106,25 @@ class Posterior:
         return cls(az.from_netcdf(str(path)))
 
 
+@functools.lru_cache(maxsize=8)
+def _prior_functions(prior) -> tuple[Callable, Callable]:
+    """The prior's bijection and log density, jitted once per prior (a fresh ``jax.jit`` per posterior
+    traced and compiled them again for every image)."""
+    import jax
+
+    return jax.jit(prior.constrain), jax.jit(prior.log_prob)
+
+
 def to_inference_data(model: PosteriorModel, run: SamplerRun | SMCRun, observed: np.ndarray,
                       attrs: dict) -> Posterior:
     """Constrained values, unconstrained draws, log-likelihoods and sampler statistics."""
     import arviz as az
-    import jax
 
     chains, draws, dimension = run.positions.shape
     flat = run.positions.reshape(-1, dimension)
-    x = {k: np.asarray(v) for k, v in model.prior.constrain(flat).items()}
-    log_prior = np.asarray(jax.jit(model.prior.log_prob)(flat))
+    constrain, log_prob = _prior_functions(model.prior)
+    x = {k: np.asarray(v) for k, v in constrain(flat).items()}
+    log_prior = np.asarray(log_prob(flat))
     shape = lambda a: a.reshape((chains, draws) + a.shape[1:])  # noqa: E731
     posterior = {name: shape(value) for name, value in x.items()}
     posterior["kappa"] = shape(np.argmax(x["class_probabilities"], axis=-1))

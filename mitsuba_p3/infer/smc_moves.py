@@ -30,6 +30,17 @@ WALK_MASK = np.array([0.0 if any(i in range(DIMENSION)[SLICES[name]]
                       for i in range(DIMENSION)], np.float32)
 
 
+# what the gradient move moves: position, yaw and log half-extents
+POSE_MASK = np.array([1.0 if any(i in range(DIMENSION)[SLICES[name]] for name in ("shift", "theta", "scale"))
+                      else 0.0 for i in range(DIMENSION)], np.float32)
+# the gradient move's finite-difference step along each direction, in units of the particles' spread
+# along it: a secant over a tenth of the posterior's width, so silhouette edges, which a render's
+# gradient without a boundary term misses, still pull
+GRADIENT_STEP = 0.1
+# the largest drift of a gradient move, in units of its step's noise (a truncated drift, MALTA)
+DRIFT_LIMIT = 3.0
+
+
 class Kernels(NamedTuple):
     """The jitted functions of one core's SMC (see :func:`_kernels`)."""
     score: Callable
@@ -37,6 +48,7 @@ class Kernels(NamedTuple):
     material: Callable
     parts: Callable
     prior: Callable
+    gradient: Callable
 
 
 @functools.lru_cache(maxsize=4)
@@ -115,7 +127,53 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int = 0) -> Kernels:
         return (moved, new_loglik.reshape(loglik.shape), logprior_all(moved, index)), \
             accepted.reshape(loglik.shape).mean(axis=1)
 
-    return Kernels(score, walk, material, parts, jax.jit(logprior_all))
+    prior_gradient = jax.vmap(jax.vmap(jax.grad(log_prior)))
+
+    def drift(z, loglik, index, tempering, directions, step, observation):
+        """(R, N, k) the tempered log density's derivative along each of the k directions (R, d, k):
+        the log prior's exactly, the log likelihood's as a forward difference of step GRADIENT_STEP
+        (k renders per particle). A deterministic function of z, so the MH ratio below stays exact."""
+        rows, n, d = z.shape
+        k = directions.shape[-1]
+        shifted = z[:, :, None, :] + GRADIENT_STEP * jnp.swapaxes(directions, 1, 2)[:, None]   # (R, N, k, d)
+        ll = loglik_all(shifted.reshape(rows, n * k, d), observation).reshape(rows, n, k)
+        h = jnp.broadcast_to(index[:, None], (rows, n))
+        prior = jnp.einsum("rnd,rdk->rnk", prior_gradient(z, h), directions)
+        g = jnp.nan_to_num(prior + tempering[:, None, None] * (ll - loglik[..., None]) / GRADIENT_STEP,
+                           nan=0.0, posinf=0.0, neginf=0.0)
+        # truncated drift (MALTA, Roberts and Tweedie 1996): a drift of at most DRIFT_LIMIT steps, so a
+        # likelihood's cliff cannot throw a particle out of the world; still a function of z alone
+        limit = DRIFT_LIMIT * 2.0 / step[:, None, None]
+        norm = jnp.sqrt(jnp.sum(g ** 2, axis=-1, keepdims=True))
+        return g * jnp.minimum(1.0, limit / jnp.maximum(norm, 1e-30))
+
+    @jax.jit
+    def gradient(key, state, index, tempering, directions, step, observation):
+        """One preconditioned MALA sweep over the pose (Roberts and Tweedie 1996) at each row's
+        temperature: in the coordinates u with z = z0 + directions u (directions: the Cholesky factor
+        of the particles' pose covariance), u' = u + step^2 / 2 g(u) + step xi, accepted with the
+        Hastings ratio of the forward and the reverse proposal. Returns (state, acceptance (R,))."""
+        k_noise, k_accept = jax.random.split(key)
+        z, loglik, logprior = state
+        eps = step[:, None, None]
+        g = drift(z, loglik, index, tempering, directions, step, observation)
+        xi = jax.random.normal(k_noise, g.shape)
+        du = 0.5 * eps ** 2 * g + eps * xi
+        proposed = z + jnp.einsum("rdk,rnk->rnd", directions, du)
+        finite = jnp.all(jnp.isfinite(proposed), axis=-1)
+        proposed = jnp.where(finite[..., None], proposed, z)           # never rendered, never accepted
+        new_loglik, new_logprior = loglik_all(proposed, observation), logprior_all(proposed, index)
+        g_new = drift(proposed, new_loglik, index, tempering, directions, step, observation)
+        forward = -0.5 * jnp.sum(xi ** 2, axis=-1)
+        reverse = -0.5 * jnp.sum((-du - 0.5 * eps ** 2 * g_new) ** 2, axis=-1) / step[:, None] ** 2
+        log_ratio = (new_logprior + tempering[:, None] * new_loglik - logprior - tempering[:, None] * loglik
+                     + reverse - forward)
+        accept = finite & (jnp.log(jax.random.uniform(k_accept, loglik.shape)) < jnp.nan_to_num(log_ratio, nan=-jnp.inf))
+        z = jnp.where(accept[..., None], proposed, z)
+        loglik, logprior = jnp.where(accept, new_loglik, loglik), jnp.where(accept, new_logprior, logprior)
+        return (z, loglik, logprior), accept.mean(axis=1)
+
+    return Kernels(score, walk, material, parts, jax.jit(logprior_all), gradient)
 
 
 def kernels(core, kinds: bool, ridge: int) -> Kernels:
@@ -123,10 +181,10 @@ def kernels(core, kinds: bool, ridge: int) -> Kernels:
     return _kernels(core, tuple(WALK_MASK.tolist()), kinds, ridge)
 
 
-def walk_factors(position: np.ndarray, scale: np.ndarray) -> np.ndarray:
+def walk_factors(position: np.ndarray, scale: np.ndarray, mask: np.ndarray = WALK_MASK) -> np.ndarray:
     """Each row's walk Cholesky factor (R, d, d): 2.38 / sqrt(d) times its particles' covariance
     over the walked dimensions, times its ``scale``."""
-    moved = WALK_MASK > 0
+    moved = mask > 0
     tril = np.zeros((len(position), DIMENSION, DIMENSION), np.float32)
     for r in range(len(position)):
         cov = np.cov(position[r][:, moved], rowvar=False) + 1e-6 * np.eye(moved.sum())
@@ -134,13 +192,31 @@ def walk_factors(position: np.ndarray, scale: np.ndarray) -> np.ndarray:
     return tril
 
 
+def pose_directions(position: np.ndarray) -> np.ndarray:
+    """Each row's gradient-move directions (R, d, k): the columns of the Cholesky factor of its
+    particles' covariance over the k pose dimensions (:data:`POSE_MASK`)."""
+    moved = POSE_MASK > 0
+    k = int(moved.sum())
+    tril = walk_factors(position, np.full(len(position), np.sqrt(k) / 2.38), POSE_MASK)
+    return tril[:, :, moved]
+
+
+def gradient_step(scale: np.ndarray) -> np.ndarray:
+    """(R,) the gradient move's step in the whitened coordinates: MALA's optimal 1.65 k^(-1/3)
+    (Roberts and Rosenthal 1998) times each row's adapted scale."""
+    return (1.65 * float(POSE_MASK.sum()) ** (-1.0 / 3.0) * np.asarray(scale)).astype(np.float32)
+
+
 def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int,
-          tempering: np.ndarray | None = None, final_sweeps: int = 0, path: bool = False) -> Callable:
+          tempering: np.ndarray | None = None, final_sweeps: int = 0, path: bool = False,
+          gradient_sweeps: int = 0, final_gradient_sweeps: int = 0) -> Callable:
     """A move for :func:`mitsuba_p3.infer.tempering.step`: ``sweeps`` sweeps of every row at its
     temperature (or at ``tempering``), ``final_sweeps`` more once every row has reached lambda = 1,
     returning the moved state and the mean acceptance per row of the walks and of the material
-    updates. With ``path`` the moved state keeps every sweep's particles, the start's included
-    (M particles in, (sweeps + 1) M out): waste-free SMC's move (Dau and Chopin 2022)."""
+    updates. ``gradient_sweeps`` (``final_gradient_sweeps`` once every row is at lambda = 1) MALA
+    sweeps over the pose follow the walks (acceptance ``gradient``). With ``path`` the moved state
+    keeps every sweep's particles, the start's included (M particles in, (sweeps + 1) M out):
+    waste-free SMC's move (Dau and Chopin 2022)."""
     import jax
     import jax.numpy as jnp
 
@@ -159,10 +235,26 @@ def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int
                 materials.append(accepted)
             if path:
                 kept.append(particles)
+        gradients = []
+        mala = gradient_sweeps + (final_gradient_sweeps if np.all(state.tempering >= 1.0) else 0)
+        if mala:
+            directions = jnp.asarray(pose_directions(np.asarray(particles[0])))
+            step = jnp.asarray(gradient_step(state.gradient_scale if state.gradient_scale is not None
+                                             else np.ones(len(state.scale))))
+            for _ in range(mala):
+                key, k_gradient = jax.random.split(key)
+                particles, accepted = kernels.gradient(k_gradient, particles, index, lam, directions, step,
+                                                       observation)
+                gradients.append(accepted)
+                if path:
+                    kept.append(particles)
         if path:
             particles = tuple(jnp.concatenate([p[i] for p in kept], axis=1) for i in range(3))
         moved = state._replace(position=np.array(particles[0]), loglikelihood=np.array(particles[1]),
                                logprior=np.array(particles[2]))
-        return moved, {"walk": np.mean(np.asarray(walks), axis=0), "material": np.mean(np.asarray(materials), axis=0)}
+        rates = {"walk": np.mean(np.asarray(walks), axis=0), "material": np.mean(np.asarray(materials), axis=0)}
+        if gradients:
+            rates["gradient"] = np.mean(np.asarray(gradients), axis=0)
+        return moved, rates
 
     return move

@@ -39,19 +39,23 @@ import numpy as np
 
 # the walk's acceptance rate the scale adapts towards (Gelman et al.: about 0.23 in many dimensions)
 TARGET_ACCEPTANCE = 0.25
+# the gradient move's (MALA: about 0.57, Roberts and Rosenthal 1998)
+TARGET_GRADIENT_ACCEPTANCE = 0.57
 # the smallest increment a step takes, so a run always advances
 MIN_INCREMENT = 1e-6
 
 
 class TemperedState(NamedTuple):
     """R runs of N particles: positions (R, N, d), their cached log likelihoods and log priors
-    (R, N), each row's temperature lambda and running log evidence (R,), and its walk scale (R,)."""
+    (R, N), each row's temperature lambda and running log evidence (R,), its walk scale and its
+    gradient move's step scale (R,)."""
     position: np.ndarray
     loglikelihood: np.ndarray
     logprior: np.ndarray
     tempering: np.ndarray
     log_evidence: np.ndarray
     scale: np.ndarray
+    gradient_scale: np.ndarray | None = None
 
 
 class TemperingInfo(NamedTuple):
@@ -75,7 +79,8 @@ def init(position, loglikelihood, logprior, log_evidence=None, tempering=None) -
     zeros = np.zeros(rows)
     return TemperedState(np.asarray(position, np.float32), np.asarray(loglikelihood, np.float32),
                          np.asarray(logprior, np.float32), zeros if tempering is None else np.asarray(tempering, float),
-                         zeros if log_evidence is None else np.asarray(log_evidence, np.float64), np.ones(rows))
+                         zeros if log_evidence is None else np.asarray(log_evidence, np.float64), np.ones(rows),
+                         np.ones(rows))
 
 
 @functools.lru_cache(maxsize=None)
@@ -150,8 +155,8 @@ def reweight(key, state: TemperedState, target_ess: float, count: int | None = N
     if count is None:           # a row that did not advance (already at lambda = 1) keeps its particles as they are
         chosen = np.where((step > 0)[:, None], chosen, np.arange(chosen.shape[1])[None])
     take = lambda a: np.take_along_axis(a, chosen.reshape(chosen.shape + (1,) * (a.ndim - 2)), axis=1)  # noqa: E731
-    new = TemperedState(take(state.position), take(state.loglikelihood), take(state.logprior), tempering,
-                        state.log_evidence + increment, state.scale)
+    new = state._replace(position=take(state.position), loglikelihood=take(state.loglikelihood),
+                         logprior=take(state.logprior), tempering=tempering, log_evidence=state.log_evidence + increment)
     return new, increment, ess
 
 
@@ -180,11 +185,16 @@ def _check_finite(loglikelihood) -> None:
 
 
 def _adapt(state: TemperedState, acceptance: dict) -> TemperedState:
-    """Step 4: each row's walk scale towards :data:`TARGET_ACCEPTANCE` by its ``walk`` acceptance."""
-    walk = acceptance.get("walk")
-    if walk is None:
-        return state
-    return state._replace(scale=state.scale * np.clip(np.exp(2.0 * (np.asarray(walk) - TARGET_ACCEPTANCE)), 0.5, 2.0))
+    """Step 4: each row's walk scale towards :data:`TARGET_ACCEPTANCE` by its ``walk`` acceptance, and
+    its gradient move's step towards :data:`TARGET_GRADIENT_ACCEPTANCE` by the ``gradient`` acceptance
+    (each by at most a factor 2 per step)."""
+    factor = lambda rate, target: np.clip(np.exp(2.0 * (np.asarray(rate) - target)), 0.5, 2.0)  # noqa: E731
+    if acceptance.get("walk") is not None:
+        state = state._replace(scale=state.scale * factor(acceptance["walk"], TARGET_ACCEPTANCE))
+    if acceptance.get("gradient") is not None and state.gradient_scale is not None:
+        state = state._replace(gradient_scale=state.gradient_scale
+                               * factor(acceptance["gradient"], TARGET_GRADIENT_ACCEPTANCE))
+    return state
 
 
 def record(info: TemperingInfo, index) -> dict:
@@ -286,8 +296,8 @@ def persistent_reweight(key, state: TemperedState, pool: Pool, target_ess: float
     chosen = resample(key, flat, n)
     take = lambda a: np.take_along_axis(a[:, :pool.filled].reshape((rows, -1) + a.shape[3:]),  # noqa: E731
                                         chosen.reshape(chosen.shape + (1,) * (a.ndim - 3)), axis=1)
-    new = TemperedState(take(pool.position), take(pool.loglikelihood), take(pool.logprior), tempering, new_log_z,
-                        state.scale)
+    new = state._replace(position=take(pool.position), loglikelihood=take(pool.loglikelihood),
+                         logprior=take(pool.logprior), tempering=tempering, log_evidence=new_log_z)
     return new, new_log_z - state.log_evidence, ess / n
 
 
