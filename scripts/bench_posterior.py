@@ -5,7 +5,9 @@ is sampled and timed; prints the machine (variant, CPU cores, GPU, JAX's backend
 count, the median and each image's seconds, modal shape and the island gap. ``--truth`` (a JSON
 list of {"class": {"shape": ...}}) adds the share of right shapes; ``--set smc.FIELD=VALUE`` changes the
 sampler as on ``mitsuba-p3 infer``; ``--profile FILE`` writes where the last image's seconds went
-(cProfile, the 40 costliest calls by cumulative time).
+(cProfile, the 40 costliest calls by cumulative time); ``--seeds 2`` samples every image under two
+seeds and adds the share of images whose decided shape is the same under all of them, with the
+island gap's median, 90th percentile and share over 10 nats.
 
     python scripts/bench_posterior.py MODEL IMAGE... [--renderer jax] [--particles 64,256] [--truth T]
 """
@@ -13,6 +15,7 @@ import argparse
 import json
 import statistics
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -26,6 +29,7 @@ def main() -> None:
     parser.add_argument("--truth", default=None)
     parser.add_argument("--set", dest="settings", action="append", default=[], help="smc.FIELD=VALUE")
     parser.add_argument("--profile", default=None, help="write the last image's profile here")
+    parser.add_argument("--seeds", type=int, default=1, help="sample every image under this many seeds")
     args = parser.parse_args()
     from mitsuba_p3.cli.settings import apply_settings
     from mitsuba_p3.fit.model import FittedModel
@@ -52,7 +56,7 @@ def main() -> None:
             continue
         warm = time.perf_counter() - start
         rows = []
-        for number, image in enumerate(images):
+        for number, (seed, image) in enumerate((s, i) for s in range(args.seeds) for i in images):
             profile = None
             if args.profile and number == len(images) - 1:
                 import cProfile
@@ -60,7 +64,8 @@ def main() -> None:
                 profile = cProfile.Profile()
                 profile.enable()
             start = time.perf_counter()
-            posterior = infer_image(fitted, image, likelihood, config, renderer=args.renderer)
+            posterior = infer_image(fitted, image, likelihood, replace(config, seed=config.seed + seed),
+                                    renderer=args.renderer)
             if profile is not None:
                 import pstats
 
@@ -68,12 +73,18 @@ def main() -> None:
                 with open(args.profile, "a") as stream:
                     stream.write(f"== {particles} particles per hypothesis\n")
                     pstats.Stats(profile, stream=stream).sort_stats("cumulative").print_stats(40)
-            rows.append({"seconds": round(time.perf_counter() - start, 3), "shape": posterior.estimate()["shape"],
-                         "island_gap": posterior.statistic("island_gap")})
+            rows.append({"seed": seed, "seconds": round(time.perf_counter() - start, 3),
+                         "shape": posterior.estimate()["shape"], "island_gap": posterior.statistic("island_gap")})
         entry = {"first_call_seconds": round(warm, 2),
                  "median_seconds": round(statistics.median(r["seconds"] for r in rows), 3), "per_image": rows}
+        gaps = np.array([r["island_gap"] for r in rows], float)
+        entry["island_gap"] = {"median": float(np.nanmedian(gaps)), "p90": float(np.nanpercentile(gaps, 90)),
+                               "over_10": float(np.nanmean(gaps > 10))}
+        if args.seeds > 1:       # the decided shape of each image under every seed
+            shapes = np.array([r["shape"] for r in rows]).reshape(args.seeds, len(images))
+            entry["same_shape_every_seed"] = float(np.mean(np.all(shapes == shapes[:1], axis=0)))
         if truth:
-            entry["shape_right"] = float(np.mean([r["shape"] == t for r, t in zip(rows, truth)]))
+            entry["shape_right"] = float(np.mean([r["shape"] == truth[n % len(images)] for n, r in enumerate(rows)]))
         report["runs"][particles] = entry
         print(json.dumps({particles: {k: v for k, v in entry.items() if k != "per_image"}}), flush=True)
     print(json.dumps(report, indent=1))

@@ -901,3 +901,15 @@ def test_runs_that_lost_the_object_are_counted_and_warned_about():
     assert [statistics["hypotheses"][n]["lost_runs"] for n in space.names] == [0, 2, 1]
     posterior = SimpleNamespace(statistic=lambda name, default=None: statistics.get(name, default))
     assert lost_hypotheses(posterior) == ["cube"]
+
+
+def test_the_smc_is_wider_where_the_jax_tracer_runs_on_a_gpu():
+    """The default particles follow the device: the CPU default everywhere but for the JAX tracer on a
+    GPU, and a command's --particles wins over either."""
+    from mitsuba_p3.cli.pipeline_commands import choose_sampler
+    from mitsuba_p3.infer.smc import GPU_PARTICLES, SMCConfig, default_particles
+
+    assert default_particles("jax", "gpu") == GPU_PARTICLES > SMCConfig.particles
+    assert default_particles("jax", "cpu") == default_particles("mitsuba", "gpu") == SMCConfig.particles
+    assert choose_sampler("smc", SamplerConfig(), None, "fitted", None, renderer="mitsuba").particles == 64
+    assert choose_sampler("smc", SamplerConfig(), 16, "fitted", None, renderer="jax").particles == 16

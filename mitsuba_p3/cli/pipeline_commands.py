@@ -12,7 +12,7 @@ from ..concepts import DistanceConfig
 from ..evaluate.config import PRESET
 from ..infer.likelihood import DEFAULT_NOISE
 from ..infer.mcmc import SamplerConfig
-from ..infer.smc import SMCConfig
+from ..infer.smc import GPU_PARTICLES, SMCConfig
 from .app import app, parse_resolution, phase_progress_bar, progress_bar, sampler_option
 from .settings import CONFIG_HELP, SET_HELP, apply_settings
 
@@ -30,22 +30,28 @@ SAMPLER_HELP_TEXT = ("auto (smc under a fitted noise model, mh under the paper's
                      "options apply).")
 
 
+PARTICLES_HELP = (f"SMC particles per hypothesis (default {SMCConfig.particles}; {GPU_PARTICLES} for the JAX "
+                  "tracer on a GPU).")
 BRIDGE_HELP = ("NP3 under SMC: start from P3's posterior of the image and temper the neural term in (about "
                "a quarter of P3's cost); --no-bridge tempers all of NP3's likelihood in from the prior.")
 
 
-def choose_sampler(name: str, mh: SamplerConfig, particles: int, noise: str, sigma: float | None,
-                   bridge: bool = SMCConfig.bridge) -> SamplerConfig | SMCConfig:
+def choose_sampler(name: str, mh: SamplerConfig, particles: int | None, noise: str, sigma: float | None,
+                   bridge: bool = SMCConfig.bridge, renderer: str = "mitsuba") -> SamplerConfig | SMCConfig:
     """The sampler a command's --sampler names: the MH settings given, or SMC with their seed; ``auto``
-    is SMC under a fitted noise model and MH under the paper's (the sampler each was measured with)."""
+    is SMC under a fitted noise model and MH under the paper's (the sampler each was measured with).
+    SMC's particles default to what the renderer is measured best with where this runs
+    (:func:`mitsuba_p3.infer.smc.default_particles`)."""
     from ..errors import ConfigError
+    from ..infer.smc import default_particles
 
     if name == "auto":
         name = "mh" if noise == "paper" or sigma is not None else "smc"
     if name == "mh":
         return mh
     if name == "smc":
-        return SMCConfig(particles=particles, seed=mh.seed, bridge=bridge)
+        return SMCConfig(particles=default_particles(renderer) if particles is None else particles, seed=mh.seed,
+                         bridge=bridge)
     raise ConfigError(f"unknown sampler {name!r}; choose auto, smc or mh")
 
 
@@ -100,7 +106,7 @@ def infer(
     tune_rounds: int = sampler_option("tune_rounds", SamplerConfig),
     tune_steps: int = sampler_option("tune_steps", SamplerConfig),
     sampler: str = typer.Option("auto", help=SAMPLER_HELP_TEXT),
-    particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
+    particles: Optional[int] = typer.Option(None, help=PARTICLES_HELP),
     bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge", help=BRIDGE_HELP),
     settings: Optional[List[str]] = typer.Option(None, "--set", help=SET_HELP),
     config_file: Optional[Path] = typer.Option(None, "--config", help=CONFIG_HELP),
@@ -124,7 +130,7 @@ def infer(
     observed = load_observation(image)
     config = apply_settings(choose_sampler(sampler, SamplerConfig(
         chains=chains, steps=steps, burn_in=burn_in, tune_rounds=tune_rounds, tune_steps=tune_steps, seed=seed),
-        particles, noise, sigma, bridge), settings, config_file)
+        particles, noise, sigma, bridge, renderer), settings, config_file)
     # a reader's lock on the model: a fit writing it now is refused here, and no fit starts meanwhile
     with folder_lock(model, "mitsuba-p3 infer", shared=True):
         fitted = FittedModel(model)
@@ -152,7 +158,8 @@ def sbc(
                                                           "cache.npz, from which a killed run resumes."),
     images: int = typer.Option(200, help="Simulations (scenes drawn from the model's prior)."),
     draws: int = typer.Option(99, help="Posterior draws ranked against each simulation's truth."),
-    particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
+    particles: Optional[int] = typer.Option(None, help=f"SMC particles per hypothesis (default "
+                                                       f"{SMCConfig.particles})."),
     resolution: str = typer.Option("120x160", help="HxW of the simulated images."),
     seed: int = typer.Option(0, help="Seed of the simulations and the sampler."),
     noise: str = typer.Option("fitted", help="The likelihood's power: fitted (1 / correlation area) or sandwich."),
@@ -171,7 +178,8 @@ def sbc(
     if images < 2 or draws < 1:
         raise ConfigError(f"--images must be at least 2 and --draws at least 1; got {images} and {draws}")
     height, width = parse_resolution(resolution)
-    config = apply_settings(SMCConfig(particles=particles), settings, config_file)
+    config = apply_settings(SMCConfig(particles=SMCConfig.particles if particles is None else particles), settings,
+                            config_file)
     with folder_lock(model, "mitsuba-p3 sbc", shared=True):
         claim_output_folder(out, ("cache.npz", "sbc.json"), "mitsuba-p3 sbc")
         bar, update = progress_bar("simulations")
@@ -198,7 +206,7 @@ def evaluate(
     tune_rounds: int = sampler_option("tune_rounds", SamplerConfig),
     tune_steps: int = sampler_option("tune_steps", SamplerConfig),
     sampler: str = typer.Option("auto", help=SAMPLER_HELP_TEXT),
-    particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
+    particles: Optional[int] = typer.Option(None, help=PARTICLES_HELP),
     bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge", help=BRIDGE_HELP),
     settings: Optional[List[str]] = typer.Option(None, "--set", help=SET_HELP),
     config_file: Optional[Path] = typer.Option(None, "--config", help=CONFIG_HELP),
@@ -229,7 +237,7 @@ def evaluate(
                                                                  spread_shots=spread_shots, direction=kl),
                               sampler=apply_settings(choose_sampler(sampler, SamplerConfig(
                                   chains=chains, steps=steps, burn_in=burn_in, tune_rounds=tune_rounds,
-                                  tune_steps=tune_steps, seed=seed), particles, noise, sigma, bridge),
+                                  tune_steps=tune_steps, seed=seed), particles, noise, sigma, bridge, renderer),
                                   settings, config_file))
     bar, track = phase_progress_bar("posteriors")
 
@@ -261,7 +269,7 @@ def reproduce(
     tune_steps: int = sampler_option("tune_steps", PRESET),
     sampler_name: str = typer.Option("auto", "--sampler", help=SAMPLER_HELP_TEXT.replace(
         "multi-chain Metropolis-Hastings", "the evaluation preset")),
-    particles: int = typer.Option(SMCConfig.particles, help="SMC particles per hypothesis."),
+    particles: Optional[int] = typer.Option(None, help=PARTICLES_HELP),
     bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge", help=BRIDGE_HELP),
     settings: Optional[List[str]] = typer.Option(None, "--set", help=SET_HELP),
     config_file: Optional[Path] = typer.Option(None, "--config", help=CONFIG_HELP),

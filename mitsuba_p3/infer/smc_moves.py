@@ -22,7 +22,7 @@ import numpy as np
 
 from ..space import DIMENSION, SLICES
 from .hypotheses import hypotheses_of, hypothesis_log_prior
-from .tempering import TemperedState
+from .tempering import TARGET_GRADIENT_ACCEPTANCE, TemperedState, adaptation
 
 # what the random walk moves: not the class (fixed by the hypothesis) nor the material (the material update's)
 WALK_MASK = np.array([0.0 if any(i in range(DIMENSION)[SLICES[name]]
@@ -168,7 +168,8 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int = 0) -> Kernels:
         reverse = -0.5 * jnp.sum((-du - 0.5 * eps ** 2 * g_new) ** 2, axis=-1) / step[:, None] ** 2
         log_ratio = (new_logprior + tempering[:, None] * new_loglik - logprior - tempering[:, None] * loglik
                      + reverse - forward)
-        accept = finite & (jnp.log(jax.random.uniform(k_accept, loglik.shape)) < jnp.nan_to_num(log_ratio, nan=-jnp.inf))
+        uniform = jnp.log(jax.random.uniform(k_accept, loglik.shape))
+        accept = finite & (uniform < jnp.nan_to_num(log_ratio, nan=-jnp.inf))
         z = jnp.where(accept[..., None], proposed, z)
         loglik, logprior = jnp.where(accept, new_loglik, loglik), jnp.where(accept, new_logprior, logprior)
         return (z, loglik, logprior), accept.mean(axis=1)
@@ -238,14 +239,17 @@ def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int
         gradients = []
         mala = gradient_sweeps + (final_gradient_sweeps if np.all(state.tempering >= 1.0) else 0)
         if mala:
+            # the step starts from the walk's adapted scale (how wide the target is against the particles'
+            # spread) times the gradient move's own, and adapts between sweeps by the population's acceptance
+            own = state.gradient_scale if state.gradient_scale is not None else np.ones(len(state.scale))
+            scale = np.asarray(state.scale) * own
             directions = jnp.asarray(pose_directions(np.asarray(particles[0])))
-            step = jnp.asarray(gradient_step(state.gradient_scale if state.gradient_scale is not None
-                                             else np.ones(len(state.scale))))
             for _ in range(mala):
                 key, k_gradient = jax.random.split(key)
-                particles, accepted = kernels.gradient(k_gradient, particles, index, lam, directions, step,
-                                                       observation)
+                particles, accepted = kernels.gradient(k_gradient, particles, index, lam, directions,
+                                                       jnp.asarray(gradient_step(scale)), observation)
                 gradients.append(accepted)
+                scale = scale * adaptation(np.asarray(accepted), TARGET_GRADIENT_ACCEPTANCE)
                 if path:
                     kept.append(particles)
         if path:

@@ -156,7 +156,8 @@ def reweight(key, state: TemperedState, target_ess: float, count: int | None = N
         chosen = np.where((step > 0)[:, None], chosen, np.arange(chosen.shape[1])[None])
     take = lambda a: np.take_along_axis(a, chosen.reshape(chosen.shape + (1,) * (a.ndim - 2)), axis=1)  # noqa: E731
     new = state._replace(position=take(state.position), loglikelihood=take(state.loglikelihood),
-                         logprior=take(state.logprior), tempering=tempering, log_evidence=state.log_evidence + increment)
+                         logprior=take(state.logprior), tempering=tempering,
+                         log_evidence=state.log_evidence + increment)
     return new, increment, ess
 
 
@@ -186,15 +187,20 @@ def _check_finite(loglikelihood) -> None:
 
 def _adapt(state: TemperedState, acceptance: dict) -> TemperedState:
     """Step 4: each row's walk scale towards :data:`TARGET_ACCEPTANCE` by its ``walk`` acceptance, and
-    its gradient move's step towards :data:`TARGET_GRADIENT_ACCEPTANCE` by the ``gradient`` acceptance
-    (each by at most a factor 2 per step)."""
-    factor = lambda rate, target: np.clip(np.exp(2.0 * (np.asarray(rate) - target)), 0.5, 2.0)  # noqa: E731
+    its gradient move's own scale (relative to the walk's) towards :data:`TARGET_GRADIENT_ACCEPTANCE` by
+    the ``gradient`` acceptance (each by at most a factor 2 per step)."""
     if acceptance.get("walk") is not None:
-        state = state._replace(scale=state.scale * factor(acceptance["walk"], TARGET_ACCEPTANCE))
+        state = state._replace(scale=state.scale * adaptation(acceptance["walk"], TARGET_ACCEPTANCE))
     if acceptance.get("gradient") is not None and state.gradient_scale is not None:
         state = state._replace(gradient_scale=state.gradient_scale
-                               * factor(acceptance["gradient"], TARGET_GRADIENT_ACCEPTANCE))
+                               * adaptation(acceptance["gradient"], TARGET_GRADIENT_ACCEPTANCE))
     return state
+
+
+def adaptation(rate, target: float) -> np.ndarray:
+    """The factor a move's scale changes by after an acceptance ``rate`` (per row): exp(2 (rate - target)),
+    at most a factor 2 either way."""
+    return np.clip(np.exp(2.0 * (np.asarray(rate, np.float64) - target)), 0.5, 2.0)
 
 
 def record(info: TemperingInfo, index) -> dict:
