@@ -4,8 +4,12 @@ A sweep is a Gaussian random walk over position, yaw and size (the dimensions of
 :data:`WALK_MASK`; each row's covariance 2.38^2 / d times its own particles', times the
 row's adapted ``scale``), then the symmetry move and ``ridge`` moves along the colour/weight
 ridge (neither renders); every ``material_every``-th sweep and the last end with the material
-Metropolis-within-Gibbs update (one render of the material bases; the costliest move). All
-are MH moves that leave each row's tempered target p(z | h) p(I | z)^lambda invariant.
+Metropolis-within-Gibbs update (one render of the material bases; the costliest move). With
+``gradient_steps`` (``final_gradient_steps`` at lambda = 1) preconditioned MALA sweeps over the
+pose follow: Langevin proposals along the particles' covariance, the likelihood's gradient a
+forward difference (one render per pose dimension; a render's own gradient has no silhouette
+term), the drift truncated (MALTA). All are MH moves that leave each row's tempered target
+p(z | h) p(I | z)^lambda invariant.
 Why five walks per material update, and why the ridge moves (the colour/weight ridge the
 material update crawls along), was measured on train images: ``docs/notebook.md``, "The SMC
 spends its renders on walks" and "A move along the colour/weight ridge".
