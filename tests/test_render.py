@@ -182,7 +182,9 @@ def _rss_mb() -> float:
         return int(f.read().split()[1]) * 4096 / 2**20
 
 
+@pytest.mark.slow
 def test_memory_flat_over_thousands_of_renders(scene):
+    """2,200 renders leave the resident memory flat (a leak check: behind ``slow``)."""
     renderer = make_renderer(scene, height=30, width=40)
     rng = np.random.default_rng(3)
     params = [random_object_params(rng, 4) for _ in range(8)]
