@@ -1,4 +1,4 @@
-"""The command line under attack (``scripts/attack_cli.py``): every mistake a user makes ends refused
+"""The command line under attack (``tests/attack_cli.py``): every mistake a user makes ends refused
 in one line or done right, never in a traceback, silence, a wrong result or lost data.
 
 A few attacks that need no fitted model (one of each kind: labels that are not JSON, an empty folder,
@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _attack_cli():
-    spec = importlib.util.spec_from_file_location("attack_cli", ROOT / "scripts" / "attack_cli.py")
+    spec = importlib.util.spec_from_file_location("attack_cli", ROOT / "tests" / "attack_cli.py")
     module = importlib.util.module_from_spec(spec)
     sys.modules["attack_cli"] = module            # its dataclasses look their module up by name
     spec.loader.exec_module(module)

@@ -17,7 +17,7 @@ lost": silent wrong results, data lost, late crashes, tracebacks instead of one 
 runaway resources and bringing one's own data set. They need a benchmark folder and a
 model fitted to it, and copy what they damage:
 
-    python scripts/attack_cli.py --dataset data/fsclvr-lo --model data/models/fsclvr-lo [--only NAME,...]
+    python tests/attack_cli.py --dataset data/fsclvr-lo --model data/models/fsclvr-lo [--only NAME,...]
 
 Prints one line per attack, then JSON: the count per class. The exit status is 1 if any
 attack ended in a class other than ``refused`` or ``ok``.
