@@ -11,8 +11,9 @@ __version__ = "0.1.0"
 
 def _jax_compilation_cache() -> str | None:
     """Where JAX keeps compiled programs between processes: ``MITSUBA_P3_JAX_CACHE`` (``off`` for none),
-    else ``$XDG_CACHE_HOME/mitsuba-p3/jax`` (``~/.cache``). The sampler's kernels then compile once per
-    machine and model, not once per command; a cache JAX was already told of is left alone."""
+    else ``$XDG_CACHE_HOME/mitsuba-p3/jax`` (``~/.cache``). The JAX tracer's programs then compile once
+    per machine and model, not once per command (JAX does not cache programs with host callbacks, so
+    the Mitsuba renderer's compile per process); a cache JAX was already told of is left alone."""
     chosen = _os.environ.get("MITSUBA_P3_JAX_CACHE")
     if chosen is not None and chosen.strip().lower() in ("", "off", "none", "0", "false"):
         return None
