@@ -872,7 +872,7 @@ def test_sampler_settings_beyond_memory_are_refused_before_rendering():
 
 
 def test_an_empty_floor_is_answered_as_nothing_and_an_object_as_one(fitted):
-    """The SMC's object evidence (:func:`mitsuba_p3.infer.smc.object_evidence`): on the fitted world's
+    """The SMC's object evidence (:func:`mitsuba_p3.infer.evidence.object_evidence`): on the fitted world's
     empty floor, "one object" loses to the floor itself (log Bayes factor < 0) and the report warns; on
     an image of an object, one object wins and nothing is flagged."""
     from mitsuba_p3.infer.report import range_warnings
@@ -898,7 +898,7 @@ def test_runs_that_lost_the_object_are_counted_and_warned_about():
     from types import SimpleNamespace
 
     from mitsuba_p3.infer.report import lost_hypotheses
-    from mitsuba_p3.infer.smc import mark_lost_runs
+    from mitsuba_p3.infer.evidence import mark_lost_runs
 
     # the best run reaches 262 from the floor's -200; a run under -200 + 0.1 * 462 = -153.8 lost the object
     loglik = np.array([[150.0, 160.0], [-200.0, -196.0], [-201.0, -200.2], [262.0, 100.0], [-160.0, -199.9]])

@@ -59,7 +59,7 @@ RANGE_SIGMAS = 3.29
 
 
 def lost_hypotheses(posterior: Posterior) -> list[str]:
-    """The hypotheses every one of whose SMC runs lost the object (:func:`~mitsuba_p3.infer.smc.mark_lost_runs`)."""
+    """The hypotheses every one of whose SMC runs lost the object (:func:`~mitsuba_p3.infer.evidence.mark_lost_runs`)."""
     hypotheses = posterior.statistic("hypotheses") or {}
     return [name for name, h in hypotheses.items()
             if isinstance(h, dict) and h.get("runs") and h.get("lost_runs", 0) >= h["runs"]]
@@ -108,7 +108,7 @@ def write_report(posterior: Posterior, fitted: FittedModel, out: str | Path, ren
         diagnostics = {"island_gap": posterior.statistic("island_gap"),
                        "temperatures": posterior.statistic("temperatures"),
                        "forced": posterior.statistic("forced"),
-                       # one object against the empty floor (smc.object_evidence): < 0, nothing explained
+                       # one object against the empty floor (evidence.object_evidence): < 0, nothing explained
                        "log_bayes_factor_object": posterior.statistic("log_bayes_factor_object"),
                        "lost_hypotheses": lost_hypotheses(posterior)}
     else:

@@ -45,7 +45,7 @@ the prior like P3.
 
 **One object, or nothing?** The hypotheses' evidence, weighed by their prior, is the evidence of
 "one object"; the empty floor is a model without parameters, whose evidence is its likelihood on
-the same window (:func:`object_evidence`). Their log ratio, ``log_bayes_factor_object``, is
+the same window (:func:`~mitsuba_p3.infer.evidence.object_evidence`). Their log ratio, ``log_bayes_factor_object``, is
 negative when the floor alone explains the image better: ``infer`` then warns.
 
 The result is an :class:`SMCRun`: draws from the mixture over hypotheses (one pool: no chains,
@@ -54,7 +54,6 @@ lambda, ESS, evidence increment and acceptance per move, per run.
 """
 from __future__ import annotations
 
-import functools
 import time
 from dataclasses import asdict, dataclass
 from typing import Callable, NamedTuple
@@ -64,7 +63,7 @@ import numpy as np
 from ..fit.noise import SCORING_WINDOW
 from ..space import SLICES
 from . import tempering
-from .evidence import decision, island_gap, island_range, pooled_evidence
+from .evidence import decision, island_gap, island_range, mark_lost_runs, object_evidence, pooled_evidence
 from .hypotheses import Hypotheses, footprint_start, hypotheses_of, initial_particles
 from .smc_moves import kernels as make_kernels
 from .smc_moves import mover
@@ -307,58 +306,6 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
     run.statistics.update(object_evidence(core, observation, rows, space, pooled))
     mark_lost_runs(run.statistics, rows, space)
     return run
-
-
-# a half-extent this small (metres) is far below a pixel: the render is the empty floor
-EMPTY_SCALE = 1e-5
-
-
-@functools.lru_cache(maxsize=4)
-def _log_likelihood(core) -> Callable:
-    """One particle's log likelihood, jitted once per core (run eagerly, op by op, the JAX tracer's
-    render took 0.9 of a GPU posterior's 1.3 s)."""
-    import jax
-
-    return jax.jit(core.log_likelihood)
-
-
-def object_evidence(core, observation, rows: Rows, space: Hypotheses, pooled: np.ndarray) -> dict:
-    """Whether the image shows an object the model explains: the log evidence of "one object" (the
-    hypotheses' evidence under their prior) against the empty floor, a model without parameters whose
-    evidence is its likelihood, scored on the same window by the same likelihood. A negative log
-    Bayes factor says the floor alone explains the image better than any object would."""
-    import jax.numpy as jnp
-
-    z = np.array(rows.state.position[0, 0], np.float32)
-    z[SLICES["scale"]] = np.log(EMPTY_SCALE)
-    empty = float(_log_likelihood(core)(jnp.asarray(z), observation))
-    one_object = float(np.logaddexp.reduce(space.log_prior + pooled))
-    return {"empty_log_likelihood": empty, "log_bayes_factor_object": one_object - empty}
-
-
-# a run whose best final particle got less than this share of the way from the empty floor's log likelihood
-# to the best any run reached never rendered the object (a wrong shape at the right pose gets most of the way:
-# 79% for a sphere against a cylinder's 100%; a lost run well under 1%)
-LOST_SHARE = 0.1
-
-
-def mark_lost_runs(statistics: dict, rows: Rows, space: Hypotheses) -> None:
-    """Count, per hypothesis, the runs that lost the object: their best final particle explains the window
-    hardly better than the empty floor, against what the best run reached (:data:`LOST_SHARE`). Such a
-    run's particles all render (nearly) the same image, their likelihoods are equal, and the tempering
-    rule, which reads equal likelihoods as a posterior already found, takes it straight to lambda = 1:
-    its evidence is about the floor's, whatever the hypothesis. (Seen under a sharp GGX lobe: both cube
-    runs of a metal cube, whose flat faces flash under prior-drawn materials, ended 2 nats above the
-    floor against the cylinder's 517; the island gap cannot show it when both runs agree.)"""
-    empty = statistics.get("empty_log_likelihood")
-    if empty is None:
-        return
-    best = rows.state.loglikelihood.max(axis=1)
-    reach = float(best.max()) - empty
-    for h, name in enumerate(space.names):
-        mine = rows.index == h
-        lost = (best[mine] - empty < LOST_SHARE * reach) if reach > 0 else np.zeros(int(mine.sum()), bool)
-        statistics["hypotheses"][name]["lost_runs"] = int(np.sum(lost))
 
 
 def _run(core, rows: Rows, pooled: np.ndarray, space: Hypotheses, config: SMCConfig,
