@@ -184,7 +184,7 @@ def sbc(
         claim_output_folder(out, ("cache.npz", "sbc.json"), "mitsuba-p3 sbc")
         bar, update = progress_bar("simulations")
         with bar:
-            summary = calibrate_model(model, out, images, draws, particles, (height, width), seed, noise,
+            summary = calibrate_model(model, out, images, draws, (height, width), seed, noise,
                                       progress=update, config=config)
     shown = {k: v for k, v in summary.items() if k != "rank_counts"}
     shown["class"] = {k: v for k, v in summary["class"].items() if k != "reliability"}

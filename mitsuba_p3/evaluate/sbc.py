@@ -212,14 +212,13 @@ def smc_sampler(core, config):
     return sample
 
 
-def calibrate_model(model_dir, out, images: int = 200, draws: int = 99, particles: int | None = None,
-                    resolution: tuple[int, int] = (120, 160), seed: int = 0, noise: str = "fitted",
-                    progress=None, config=None) -> dict:
+def calibrate_model(model_dir, out, images: int = 200, draws: int = 99, resolution: tuple[int, int] = (120, 160),
+                    seed: int = 0, noise: str = "fitted", progress=None, config=None) -> dict:
     """SBC of the default sampler (tempered SMC) on a fitted model's own renders: ``images`` simulations
     from its prior, each rendered with its observation model plus the likelihood's noise at the effective
     sigma / sqrt(power) that inference uses (``noise``: the power 1 / correlation area, ``fitted``, or the
-    sandwich power along the pose, ``sandwich``); ``config`` an :class:`~mitsuba_p3.infer.smc.SMCConfig`
-    other than the default (its ``particles`` then rule). Writes ``out/sbc.json``, ``sbc.png``, ``calibration.png``
+    sandwich power along the pose, ``sandwich``); ``config``: the :class:`~mitsuba_p3.infer.smc.SMCConfig`
+    (default: the default). Writes ``out/sbc.json``, ``sbc.png``, ``calibration.png``
     and ``cache.npz``, from which a killed run resumes; returns the summary."""
     from pathlib import Path
 
@@ -239,8 +238,7 @@ def calibrate_model(model_dir, out, images: int = 200, draws: int = 99, particle
     likelihood = LikelihoodConfig("p3", sigma=model_noise.gaussian_sigma / np.sqrt(power), shadows=model_noise.shadows)
     core = PosteriorCore(fitted, likelihood, "mitsuba", *resolution)
     out.mkdir(parents=True, exist_ok=True)
-    if config is None:
-        config = SMCConfig() if particles is None else SMCConfig(particles=particles)
+    config = config or SMCConfig()
     changed = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)
                if getattr(config, f.name) != f.default and f.name != "seed"}
     result = run_sbc(core, smc_sampler(core, config), images, draws, seed, cache=out / "cache.npz", progress=progress,

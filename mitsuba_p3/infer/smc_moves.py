@@ -186,24 +186,28 @@ def kernels(core, kinds: bool, ridge: int) -> Kernels:
     return _kernels(core, tuple(WALK_MASK.tolist()), kinds, ridge)
 
 
-def walk_factors(position: np.ndarray, scale: np.ndarray, mask: np.ndarray = WALK_MASK) -> np.ndarray:
-    """Each row's walk Cholesky factor (R, d, d): 2.38 / sqrt(d) times its particles' covariance
-    over the walked dimensions, times its ``scale``."""
+def covariance_factors(position: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Each row's Cholesky factor (R, d, d) of its particles' covariance over the dimensions of
+    ``mask`` (zero elsewhere)."""
     moved = mask > 0
-    tril = np.zeros((len(position), DIMENSION, DIMENSION), np.float32)
+    tril = np.zeros((len(position), DIMENSION, DIMENSION))
     for r in range(len(position)):
         cov = np.cov(position[r][:, moved], rowvar=False) + 1e-6 * np.eye(moved.sum())
-        tril[r][np.ix_(moved, moved)] = np.linalg.cholesky(cov) * 2.38 / np.sqrt(moved.sum()) * scale[r]
+        tril[r][np.ix_(moved, moved)] = np.linalg.cholesky(cov)
     return tril
+
+
+def walk_factors(position: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Each row's walk Cholesky factor (R, d, d): 2.38 / sqrt(d) times its particles' covariance
+    over the walked dimensions, times its ``scale``."""
+    factors = covariance_factors(position, WALK_MASK) * 2.38 / np.sqrt(int(WALK_MASK.sum()))
+    return (factors * np.asarray(scale)[:, None, None]).astype(np.float32)
 
 
 def pose_directions(position: np.ndarray) -> np.ndarray:
     """Each row's gradient-move directions (R, d, k): the columns of the Cholesky factor of its
     particles' covariance over the k pose dimensions (:data:`POSE_MASK`)."""
-    moved = POSE_MASK > 0
-    k = int(moved.sum())
-    tril = walk_factors(position, np.full(len(position), np.sqrt(k) / 2.38), POSE_MASK)
-    return tril[:, :, moved]
+    return covariance_factors(position, POSE_MASK)[:, :, POSE_MASK > 0].astype(np.float32)
 
 
 def gradient_step(scale: np.ndarray) -> np.ndarray:
@@ -230,7 +234,8 @@ def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int
         tril = jnp.asarray(walk_factors(np.asarray(state.position), state.scale))
         particles = tuple(jnp.asarray(a) for a in state[:3])
         walks, materials, kept = [], [], [particles] if path else []   # waste-free keeps every sweep's states
-        total = sweeps + (final_sweeps if np.all(state.tempering >= 1.0) else 0)
+        final = bool(np.all(state.tempering >= 1.0))      # every row at lambda = 1: the last move
+        total = sweeps + (final_sweeps if final else 0)
         for i in range(total):
             key, k_walk, k_material = jax.random.split(key, 3)
             particles, accepted = kernels.walk(k_walk, particles, index, lam, tril, observation)
@@ -241,12 +246,11 @@ def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int
             if path:
                 kept.append(particles)
         gradients = []
-        mala = gradient_sweeps + (final_gradient_sweeps if np.all(state.tempering >= 1.0) else 0)
+        mala = gradient_sweeps + (final_gradient_sweeps if final else 0)
         if mala:
             # the step starts from the walk's adapted scale (how wide the target is against the particles'
             # spread) times the gradient move's own, and adapts between sweeps by the population's acceptance
-            own = state.gradient_scale if state.gradient_scale is not None else np.ones(len(state.scale))
-            scale = np.asarray(state.scale) * own
+            scale = np.asarray(state.scale) * state.gradient_scale
             directions = jnp.asarray(pose_directions(np.asarray(particles[0])))
             for _ in range(mala):
                 key, k_gradient = jax.random.split(key)

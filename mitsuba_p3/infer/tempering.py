@@ -55,7 +55,7 @@ class TemperedState(NamedTuple):
     tempering: np.ndarray
     log_evidence: np.ndarray
     scale: np.ndarray
-    gradient_scale: np.ndarray | None = None
+    gradient_scale: np.ndarray
 
 
 class TemperingInfo(NamedTuple):
@@ -191,7 +191,7 @@ def _adapt(state: TemperedState, acceptance: dict) -> TemperedState:
     the ``gradient`` acceptance (each by at most a factor 2 per step)."""
     if acceptance.get("walk") is not None:
         state = state._replace(scale=state.scale * adaptation(acceptance["walk"], TARGET_ACCEPTANCE))
-    if acceptance.get("gradient") is not None and state.gradient_scale is not None:
+    if acceptance.get("gradient") is not None:
         state = state._replace(gradient_scale=state.gradient_scale
                                * adaptation(acceptance["gradient"], TARGET_GRADIENT_ACCEPTANCE))
     return state
