@@ -446,6 +446,25 @@ def test_footprint_proposal_density_is_normalised_and_matches_its_draws():
     np.testing.assert_allclose(draws.mean(axis=0), mean, atol=2e-3)
 
 
+def test_footprint_density_compiled_equals_the_float64_formula():
+    """The compiled (float32, padded) proposal density equals the mixture written out in float64 numpy."""
+    from scipy.special import logsumexp
+
+    from mitsuba_p3.infer.footprint import log_normal_mass
+
+    proposal = _proposal()
+    rng = np.random.default_rng(2)
+    scale = np.exp(rng.normal(np.log(0.03), 0.3, (500, 3)))
+    shift = rng.uniform(-0.14, 0.14, (500, 2))
+    centre = proposal.centres(scale[:, 2])
+    sd = proposal.jitter(scale)[:, None, None]
+    low, high = (-proposal.bound - centre) / sd, (proposal.bound - centre) / sd
+    per_axis = (-0.5 * ((shift[:, None, :] - centre) / sd) ** 2 - 0.5 * np.log(2 * np.pi) - np.log(sd)
+                - log_normal_mass(low, high))
+    expected = logsumexp(per_axis.sum(axis=-1), axis=1) - np.log(len(proposal.directions))
+    np.testing.assert_allclose(proposal.log_density(shift, scale), expected, atol=2e-4)
+
+
 @pytest.mark.parametrize("renderer", ["mitsuba", "jax"])
 def test_a_windowed_likelihood_scores_the_window_around_the_object(fitted, renderer):
     """The window sits on the object's footprint; the windowed log likelihood and material move

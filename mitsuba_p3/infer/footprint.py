@@ -109,15 +109,54 @@ class FootprintProposal:
         return truncnorm.rvs(low, high, loc=centre, scale=sd, random_state=rng)
 
     def log_density(self, shift: np.ndarray, scale: np.ndarray) -> np.ndarray:
-        """(n,) log q(shift | scale) of the truncated normal mixture."""
-        from scipy.special import logsumexp
+        """(n,) log q(shift | scale) of the truncated normal mixture: one compiled JAX function
+        (:func:`_mixture_log_density`) over every draw and ray, on the device JAX runs on (the rays
+        padded to ``MAX_PIXELS``, so every image shares one compilation)."""
+        import jax.numpy as jnp
 
-        centre = self.centres(scale[:, 2])                                    # (n, K, 2)
-        sd = self.jitter(scale)[:, None, None]
-        z = (np.asarray(shift, np.float64)[:, None, :] - centre) / sd
-        low, high = (-self.bound - centre) / sd, (self.bound - centre) / sd
-        per_axis = -0.5 * z ** 2 - 0.5 * np.log(2 * np.pi) - np.log(sd) - log_normal_mass(low, high)
-        return logsumexp(per_axis.sum(axis=-1), axis=1) - np.log(len(self.directions))
+        count = len(self.directions)
+        rays = np.zeros((MAX_PIXELS, 3))
+        rays[:, 2] = -1.0                                          # padding: never used (masked)
+        rays[:count] = self.directions
+        valid = np.arange(MAX_PIXELS) < count
+        out = _mixture_log_density(jnp.asarray(shift, jnp.float32), jnp.asarray(scale, jnp.float32),
+                                   jnp.asarray(self.origin, jnp.float32), jnp.asarray(rays, jnp.float32),
+                                   jnp.asarray(valid), jnp.float32(self.bound))
+        return np.asarray(out, np.float64)
+
+
+def _jitted_mixture_log_density():
+    import jax
+    import jax.numpy as jnp
+    from jax.scipy.special import log_ndtr, logsumexp
+
+    @jax.jit
+    def density(shift, scale, origin, rays, valid, bound):
+        t = (scale[:, 2:3] - origin[2]) / rays[None, :, 2]                   # (n, K)
+        centre = origin[None, None, :2] + t[..., None] * rays[None, :, :2]    # (n, K, 2)
+        sd = jnp.mean(scale[:, :2], axis=1)[:, None, None]
+        z = (shift[:, None, :] - centre) / sd
+        low, high = (-bound - centre) / sd, (bound - centre) / sd
+        upper = low > 0
+        a = jnp.where(upper, log_ndtr(-low), log_ndtr(high))
+        b = jnp.where(upper, log_ndtr(-high), log_ndtr(low))
+        mass = a + jnp.log1p(-jnp.exp(jnp.minimum(b - a, -1e-30)))
+        per_axis = -0.5 * z ** 2 - 0.5 * jnp.log(2 * jnp.pi) - jnp.log(sd) - mass
+        terms = jnp.where(valid[None, :], per_axis.sum(axis=-1), -jnp.inf)
+        return logsumexp(terms, axis=1) - jnp.log(jnp.sum(valid))
+
+    return density
+
+
+def _mixture_log_density(*args):
+    """The compiled density of :meth:`FootprintProposal.log_density` (built on first use)."""
+    global _DENSITY
+    if _DENSITY is None:
+        _DENSITY = _jitted_mixture_log_density()
+    return _DENSITY(*args)
+
+
+_DENSITY = None
 
 
 def log_normal_mass(low: np.ndarray, high: np.ndarray) -> np.ndarray:
