@@ -66,7 +66,9 @@ def successive_conditional(core, hypothesis: int, moves: str, chains: int, steps
     :func:`~mitsuba_p3.infer.hypotheses.hypotheses_of` without kinds) for ``steps`` steps with the SMC
     move set ``moves`` (``walk``: random walk + symmetry + ridge; ``material``: the material update;
     ``both``). The walk's covariance is ``walk_scale`` times the prior draws' own (fixed: an adaptive
-    covariance would be another test). Returns (start, end) points (chains, 15) and the mean acceptance."""
+    covariance would be another test). The moves target p(z) p(y | z)^``tempering``: anything but 1 is a
+    deliberately wrong kernel, the check's own test. Returns (start, end) points (chains, 15) and the
+    mean acceptance."""
     import jax
     import jax.numpy as jnp
 
