@@ -727,6 +727,36 @@ def test_smc_runs_every_hypothesis_and_keeps_their_evidence(fitted, tmp_path, ki
     assert (saved.statistic("island_gap") is None) == (islands == 1 and rounds == 1)
 
 
+def test_a_wide_start_keeps_more_particles_first_then_the_configured_count(fitted, monkeypatch):
+    """With ``wide`` = 4 for ``wide_steps`` = 2, the runs move 4 N particles through their first two
+    temperatures and end with N; the start cannot be wider than the oversampled draws it comes from."""
+    from mitsuba_p3.errors import ConfigError
+    from mitsuba_p3.infer.smc import SMCConfig, sample_smc
+
+    with pytest.raises(ConfigError, match="oversample"):
+        SMCConfig(wide=16, wide_steps=2)
+    with pytest.raises(ConfigError, match="persistent"):
+        SMCConfig(wide=4, wide_steps=2, persistent=True)
+    observed = make_renderer_image(fitted)
+    model = PosteriorModel(fitted, observed, LikelihoodConfig("p3", sigma=0.03, power=0.05, shadows=True))
+    config = SMCConfig(particles=8, mcmc_steps=1, final_steps=1, draws=40, window=None, islands=1,
+                       wide=4, wide_steps=2)
+    from mitsuba_p3.infer import tempering
+
+    counts, step = [], tempering.step
+
+    def counted(*args, **kwargs):
+        state, info = step(*args, **kwargs)
+        counts.append(state.position.shape[1])
+        return state, info
+
+    monkeypatch.setattr(tempering, "step", counted)
+    run = sample_smc(model.core, model.observation, config)
+    assert run.statistics["temperatures"] > 2
+    assert counts[:2] == [32, 32] and set(counts[2:]) == {8}
+    assert run.particles.rows.state.position.shape[1] == 8
+
+
 def test_bridge_from_p3_adds_the_neural_terms_evidence(fitted):
     """The bridge from P3's particles to NP3 (:func:`mitsuba_p3.infer.bridge.bridge`): with a neural weight
     of zero it changes no evidence and takes one step; with the real weight and one step (a low ESS

@@ -80,6 +80,10 @@ class SMCConfig:
     # gradient-informed move with finite-difference likelihood gradients (k renders per particle each)
     gradient_steps: int = 0
     final_gradient_steps: int = 0
+    # a wide start: the first wide_steps temperatures keep wide x particles (resampled from the oversampled
+    # draws), the step after them resamples down to particles: width where the pose is chosen
+    wide: int = 1
+    wide_steps: int = 0
     footprint: bool = True         # half of the first step's draws placed from the image's footprint
     kinds: bool = False            # material kinds as hypotheses of their own (else within each shape)
     ridge: int = 3                 # ridge moves (colour x s, weights / s; no render) after every walk
@@ -108,7 +112,13 @@ class SMCConfig:
 
         check_counts(self, {"particles": 4, "oversample": 1, "mcmc_steps": 1, "material_every": 1, "final_steps": 0,
                             "gradient_steps": 0, "final_gradient_steps": 0, "islands": 1, "rounds": 1,
-                            "max_temperatures": 1, "draws": 4, "seed": 0, "ridge": 0, "waste_free": 0}, "smc ")
+                            "max_temperatures": 1, "draws": 4, "seed": 0, "ridge": 0, "waste_free": 0, "wide": 1,
+                            "wide_steps": 0}, "smc ")
+        if self.wide_steps and self.wide > 1 and (self.persistent or self.waste_free > 1):
+            raise ConfigError("smc wide start excludes persistent sampling and waste-free SMC")
+        if self.wide > self.oversample:
+            raise ConfigError(f"smc wide ({self.wide}) cannot exceed oversample ({self.oversample}): the wide "
+                              "start is resampled from the oversampled draws")
         if not 0.0 < self.target_ess < 1.0:
             raise ConfigError(f"smc target-ess must lie in (0, 1); got {self.target_ess}")
         if self.waste_free > 1 and (self.particles % self.waste_free or self.persistent):
@@ -214,9 +224,14 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
         if pool is not None:        # persistent sampling: reweight and resample the pool of every step so far
             state, pool, info = tempering.persistent_step(k_step, state, pool, move, config.persistent_ess, force)
         else:
-            state, info = tempering.step(k_step, state, move, config.target_ess / (config.oversample if first else 1),
-                                         count=kept or (config.particles if first else None),
-                                         offset=offset if first else None, force=force)
+            # the first step keeps N (wide x N during a wide start) of the oversampled draws; the step after
+            # the wide start resamples down to N
+            width = config.wide if config.wide_steps else 1
+            count = kept or (width * config.particles if first else
+                             config.particles if width > 1 and len(steps) == config.wide_steps else None)
+            state, info = tempering.step(k_step, state, move,
+                                         config.target_ess / (config.oversample / width if first else 1),
+                                         count=count, offset=offset if first else None, force=force)
             if config.persistent:
                 pool = tempering.pool_add(None, state, config.max_temperatures)
         steps.append(tempering.record(info, index))
