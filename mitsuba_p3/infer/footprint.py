@@ -22,6 +22,7 @@ cheaper. A shadow pixel's proposal is wrong and its draws simply weigh little.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -119,13 +120,18 @@ class FootprintProposal:
         rays[:, 2] = -1.0                                          # padding: never used (masked)
         rays[:count] = self.directions
         valid = np.arange(MAX_PIXELS) < count
-        out = _mixture_log_density(jnp.asarray(shift, jnp.float32), jnp.asarray(scale, jnp.float32),
-                                   jnp.asarray(self.origin, jnp.float32), jnp.asarray(rays, jnp.float32),
-                                   jnp.asarray(valid), jnp.float32(self.bound))
+        out = _mixture_log_density()(jnp.asarray(shift, jnp.float32), jnp.asarray(scale, jnp.float32),
+                                     jnp.asarray(self.origin, jnp.float32), jnp.asarray(rays, jnp.float32),
+                                     jnp.asarray(valid), jnp.float32(self.bound))
         return np.asarray(out, np.float64)
 
 
-def _jitted_mixture_log_density():
+@functools.lru_cache(maxsize=None)
+def _mixture_log_density():
+    """The compiled density of :meth:`FootprintProposal.log_density` (built on first use): per draw,
+    log (1/K) sum_k prod_axis N(shift; centre_k, sd) / mass of the floor box under it, over the valid
+    rays. The box's mass log(Phi(high) - Phi(low)) is taken on the side of 0 where both tails are
+    small, so a box far from a component's centre still gets its tiny mass, not 0."""
     import jax
     import jax.numpy as jnp
     from jax.scipy.special import log_ndtr, logsumexp
@@ -137,7 +143,7 @@ def _jitted_mixture_log_density():
         sd = jnp.mean(scale[:, :2], axis=1)[:, None, None]
         z = (shift[:, None, :] - centre) / sd
         low, high = (-bound - centre) / sd, (bound - centre) / sd
-        upper = low > 0
+        upper = low > 0                      # both in the upper tail: Phi(-low) - Phi(-high)
         a = jnp.where(upper, log_ndtr(-low), log_ndtr(high))
         b = jnp.where(upper, log_ndtr(-high), log_ndtr(low))
         mass = a + jnp.log1p(-jnp.exp(jnp.minimum(b - a, -1e-30)))
@@ -146,28 +152,6 @@ def _jitted_mixture_log_density():
         return logsumexp(terms, axis=1) - jnp.log(jnp.sum(valid))
 
     return density
-
-
-def _mixture_log_density(*args):
-    """The compiled density of :meth:`FootprintProposal.log_density` (built on first use)."""
-    global _DENSITY
-    if _DENSITY is None:
-        _DENSITY = _jitted_mixture_log_density()
-    return _DENSITY(*args)
-
-
-_DENSITY = None
-
-
-def log_normal_mass(low: np.ndarray, high: np.ndarray) -> np.ndarray:
-    """log(Phi(high) - Phi(low)) for low < high, accurate in both tails (a box far from a component's
-    centre still gets its tiny mass, not 0): computed on the side of 0 where the masses are small."""
-    from scipy.special import log_ndtr
-
-    upper = low > 0                              # both in the upper tail: use Phi(-low) - Phi(-high)
-    a = np.where(upper, log_ndtr(-low), log_ndtr(high))
-    b = np.where(upper, log_ndtr(-high), log_ndtr(low))
-    return a + np.log1p(-np.exp(np.minimum(b - a, -1e-300)))
 
 
 def shift_log_prior(prior, shift: np.ndarray) -> np.ndarray:
