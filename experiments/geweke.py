@@ -13,8 +13,6 @@ import argparse
 import json
 import time
 
-import numpy as np
-
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -27,21 +25,15 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     from mitsuba_p3.evaluate.geweke import geweke_check
-    from mitsuba_p3.fit.model import FittedModel
-    from mitsuba_p3.infer.likelihood import LikelihoodConfig
-    from mitsuba_p3.infer.model import PosteriorCore
+    from mitsuba_p3.evaluate.sbc import model_core
     from mitsuba_p3.shapes import SHAPES
 
-    fitted = FittedModel(args.model)
-    noise = fitted.noise
-    likelihood = LikelihoodConfig("p3", sigma=noise.gaussian_sigma / np.sqrt(noise.power), shadows=noise.shadows)
-    height, width = (int(v) for v in args.resolution.split("x"))
-    core = PosteriorCore(fitted, likelihood, "jax", height, width)
+    core = model_core(args.model, "jax", tuple(int(v) for v in args.resolution.split("x")))
     for hypothesis, shape in enumerate(SHAPES):
         begin = time.perf_counter()
         result = geweke_check(core, hypothesis, tuple(args.moves.split(",")), args.chains, args.steps, args.seed,
                               args.walk_scale)
-        print(json.dumps({"model": args.model, "resolution": args.resolution, "sigma": likelihood.sigma,
+        print(json.dumps({"model": args.model, "resolution": args.resolution, "sigma": core.config.sigma,
                           "hypothesis": shape, "seconds": round(time.perf_counter() - begin, 1),
                           **result.summary()}), flush=True)
 

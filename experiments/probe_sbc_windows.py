@@ -22,19 +22,12 @@ def main() -> None:
     parser.add_argument("--cache", required=True, help="an SBC run's cache.npz (same model and seed)")
     parser.add_argument("--resolution", default="120x160")
     args = parser.parse_args()
-    from mitsuba_p3.evaluate.sbc import simulate
-    from mitsuba_p3.infer.footprint import FootprintProposal, footprint_mask
-    from mitsuba_p3.fit.model import FittedModel
+    from mitsuba_p3.evaluate.sbc import model_core, simulate
     from mitsuba_p3.fit.noise import SCORING_WINDOW
-    from mitsuba_p3.infer.likelihood import LikelihoodConfig
-    from mitsuba_p3.infer.model import PosteriorCore
+    from mitsuba_p3.infer.footprint import FootprintProposal, footprint_mask
     from mitsuba_p3.space import render_params
 
-    fitted = FittedModel(args.model)
-    noise = fitted.noise
-    likelihood = LikelihoodConfig("p3", sigma=noise.gaussian_sigma / np.sqrt(noise.power), shadows=noise.shadows)
-    height, width = (int(v) for v in args.resolution.split("x"))
-    core = PosteriorCore(fitted, likelihood, "mitsuba", height, width)
+    core = model_core(args.model, "mitsuba", tuple(int(v) for v in args.resolution.split("x")))
     with np.load(args.cache) as cache:
         ranks, draws, seed = cache["ranks"], int(cache["draws"]), int(cache["seed"])
     rows, offsets = [], []

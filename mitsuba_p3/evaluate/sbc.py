@@ -212,6 +212,24 @@ def smc_sampler(core, config):
     return sample
 
 
+def model_core(model_dir, renderer: str = "mitsuba", resolution: tuple[int, int] = (120, 160), noise: str = "fitted"):
+    """The :class:`~mitsuba_p3.infer.model.PosteriorCore` of a fitted model whose likelihood is the one its
+    own images are simulated from: the fitted Gaussian at sigma / sqrt(power), power 1 (``noise``:
+    ``fitted``, the power 1 / correlation area, or ``sandwich``, the pose's)."""
+    from ..errors import FitError
+    from ..fit.model import FittedModel
+    from ..infer.likelihood import LikelihoodConfig
+    from ..infer.model import PosteriorCore
+
+    fitted = FittedModel(model_dir)
+    model_noise = fitted.noise
+    power = model_noise.power if noise == "fitted" else model_noise.pose_power
+    if power is None:
+        raise FitError(f"{model_dir} has no sandwich power: refit its noise stage (mitsuba-p3 fit ... --stages noise)")
+    likelihood = LikelihoodConfig("p3", sigma=model_noise.gaussian_sigma / np.sqrt(power), shadows=model_noise.shadows)
+    return PosteriorCore(fitted, likelihood, renderer, *resolution)
+
+
 def calibrate_model(model_dir, out, images: int = 200, draws: int = 99, resolution: tuple[int, int] = (120, 160),
                     seed: int = 0, noise: str = "fitted", progress=None, config=None) -> dict:
     """SBC of the default sampler (tempered SMC) on a fitted model's own renders: ``images`` simulations
@@ -222,28 +240,18 @@ def calibrate_model(model_dir, out, images: int = 200, draws: int = 99, resoluti
     and ``cache.npz``, from which a killed run resumes; returns the summary."""
     from pathlib import Path
 
-    from ..errors import FitError
     from ..files import atomic_json
-    from ..fit.model import FittedModel
-    from ..infer.likelihood import LikelihoodConfig
-    from ..infer.model import PosteriorCore
     from ..infer.smc import SMCConfig
     from ..plots import sbc_figures
 
-    fitted, out = FittedModel(model_dir), Path(out)
-    model_noise = fitted.noise
-    power = model_noise.power if noise == "fitted" else model_noise.pose_power
-    if power is None:
-        raise FitError(f"{model_dir} has no sandwich power: refit its noise stage (mitsuba-p3 fit ... --stages noise)")
-    likelihood = LikelihoodConfig("p3", sigma=model_noise.gaussian_sigma / np.sqrt(power), shadows=model_noise.shadows)
-    core = PosteriorCore(fitted, likelihood, "mitsuba", *resolution)
+    core, out = model_core(model_dir, "mitsuba", resolution, noise), Path(out)
     out.mkdir(parents=True, exist_ok=True)
     config = config or SMCConfig()
     changed = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)
                if getattr(config, f.name) != f.default and f.name != "seed"}
     result = run_sbc(core, smc_sampler(core, config), images, draws, seed, cache=out / "cache.npz", progress=progress,
                      tag=json.dumps(changed, sort_keys=True))
-    summary = {"model": str(model_dir), "noise": noise, "likelihood_sigma": likelihood.sigma,
+    summary = {"model": str(model_dir), "noise": noise, "likelihood_sigma": core.config.sigma,
                "smc": dataclasses.asdict(config), **result.summary()}
     atomic_json(out / "sbc.json", summary)
     sbc_figures(summary, result, out / "sbc.png")
