@@ -13,7 +13,10 @@ keeps the joint p(z) p(y | z), so every z_t is again a prior draw, however many 
 whether or not K mixes well. A move with a wrong Hastings term, a conditional drawn from the wrong
 distribution, or a density that disagrees with the simulator drifts z_t away from the prior; the
 drift grows with the number of moves. Mixing does not matter, so this test cannot be passed by a
-broad search, and a poor search cannot fail it.
+broad search, and a poor search cannot fail it. Its power is for errors that move z on the prior's
+scale (a simulator that disagrees with the renders, a conditional drawn from the wrong place): an
+error of the posterior's own width (moves at the wrong temperature) is pulled back by the prior at
+every step and stays within a fraction of the prior's spread.
 
 Each of many independent chains runs ``steps`` successive-conditional steps; their final states
 are compared with fresh prior draws of the same hypothesis coordinate by coordinate (two-sample
@@ -28,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .sbc import CHECKED
+from .sbc import CHECKED, checked_values
 
 GEWEKE_NAMES = CHECKED + ("theta", "ambient", "diffuse", "specular", "shininess")
 
@@ -36,8 +39,6 @@ GEWEKE_NAMES = CHECKED + ("theta", "ambient", "diffuse", "specular", "shininess"
 def natural(prior, z: np.ndarray) -> np.ndarray:
     """(n, len(GEWEKE_NAMES)) the compared coordinates of points z (n, 15)."""
     import jax.numpy as jnp
-
-    from .sbc import checked_values
 
     x = {k: np.asarray(v) for k, v in prior.constrain(jnp.asarray(z)).items()}
     rest = np.stack([x[k] for k in GEWEKE_NAMES[len(CHECKED):]], axis=-1)
