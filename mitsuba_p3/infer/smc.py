@@ -217,6 +217,7 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
                  config.material_every, final_sweeps=0 if free else config.final_steps, path=free,
                  gradient_sweeps=config.gradient_steps, final_gradient_sweeps=config.final_gradient_steps)
     kept = config.particles // config.waste_free if free else None
+    width = config.wide if config.wide_steps else 1      # a wide start's particles per particle
     steps, pool = [], None
     while len(steps) < config.max_temperatures and not np.all(state.tempering >= 1.0):
         key, k_step = jax.random.split(key)
@@ -226,7 +227,6 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
         else:
             # the first step keeps N (wide x N during a wide start) of the oversampled draws; the step after
             # the wide start resamples down to N
-            width = config.wide if config.wide_steps else 1
             count = kept or (width * config.particles if first else
                              config.particles if width > 1 and len(steps) == config.wide_steps else None)
             state, info = tempering.step(k_step, state, move,
