@@ -731,6 +731,7 @@ def test_smc_runs_every_hypothesis_and_keeps_their_evidence(fitted, tmp_path, ki
     assert (saved.statistic("island_gap") is None) == (islands == 1 and rounds == 1)
 
 
+@pytest.mark.slow
 def test_a_wide_start_keeps_more_particles_first_then_the_configured_count(fitted, monkeypatch):
     """With ``wide`` = 4 for ``wide_steps`` = 2, the runs move 4 N particles through their first two
     temperatures and end with N; the start cannot be wider than the oversampled draws it comes from."""
