@@ -762,6 +762,66 @@ def test_a_wide_start_keeps_more_particles_first_then_the_configured_count(fitte
     assert run.particles.rows.state.position.shape[1] == 8
 
 
+def test_a_coarse_view_is_the_box_mean_and_needs_a_wide_start():
+    from mitsuba_p3.errors import ConfigError
+    from mitsuba_p3.infer.coarse import downsample
+    from mitsuba_p3.infer.smc import SMCConfig
+
+    image = np.arange(4 * 6 * 3, dtype=np.float32).reshape(4, 6, 3)
+    small = downsample(image, 2)
+    assert small.shape == (2, 3, 3)
+    np.testing.assert_allclose(small[1, 2], image[2:4, 4:6].mean(axis=(0, 1)))
+    with pytest.raises(ConfigError, match="wide"):
+        SMCConfig(coarse=2)
+    with pytest.raises(ConfigError, match="wide"):
+        SMCConfig(coarse=2, wide=4)
+
+
+@pytest.mark.slow
+def test_a_coarse_start_scores_at_half_the_resolution_then_changes_to_the_full_likelihood(fitted, monkeypatch):
+    """``coarse`` = 2: the wide start's steps score 60 x 80 renders of a box-averaged image at 4x the
+    power; the step after it weighs each particle by the ratio of the two tempered likelihoods,
+    lambda (full - coarse), recomputed here from both cores, and from then on every particle's
+    cached log likelihood is the full likelihood's."""
+    import jax
+
+    from mitsuba_p3.infer import tempering
+    from mitsuba_p3.infer.coarse import coarse_view
+    from mitsuba_p3.infer.smc import SMCConfig, temper
+    from mitsuba_p3.infer.smc_moves import kernels as make_kernels
+
+    observed = make_renderer_image(fitted)
+    model = PosteriorModel(fitted, observed, LikelihoodConfig("p3", sigma=0.03, power=0.05, shadows=True))
+    config = SMCConfig(particles=8, mcmc_steps=1, final_steps=1, draws=40, window=None, islands=2,
+                       wide=4, wide_steps=2, coarse=2)
+    calls, step = [], tempering.step
+
+    def recorded(key, state, move, target_ess, count=None, offset=None, force=False, shared=False):
+        calls.append((state, offset))
+        moved, info = step(key, state, move, target_ess, count, offset, force, shared)
+        calls[-1] += (moved,)
+        return moved, info
+
+    monkeypatch.setattr(tempering, "step", recorded)
+    index = np.arange(3)
+    rows = temper(model.core, model.observation, index, config, np.random.default_rng(0), jax.random.PRNGKey(0))
+    coarse, small = coarse_view(model.core, model.observation, observed, 2)
+    assert (coarse.renderer.height, coarse.renderer.width, coarse.config.power) == (60, 80, pytest.approx(0.2))
+    assert [c[2].position.shape[1] for c in calls[:3]] == [32, 32, 8]
+    full_kernels, coarse_kernels = make_kernels(model.core, False, config.ridge), make_kernels(coarse, False, config.ridge)
+    # before the change the cache is the coarse likelihood's; at it, the weights are lambda (full - coarse)
+    before = calls[1][2]
+    coarse_ll, _ = coarse_kernels.score(before.position, index, small)
+    np.testing.assert_allclose(before.loglikelihood, np.asarray(coarse_ll), rtol=1e-5, atol=1e-2)
+    full_ll, _ = full_kernels.score(before.position, index, model.observation)
+    expected = before.tempering[:, None] * (np.asarray(full_ll, np.float64) - np.asarray(coarse_ll, np.float64))
+    np.testing.assert_allclose(calls[2][1], expected, rtol=1e-4, atol=1e-2)
+    assert np.ptp(expected, axis=1).min() > 0.05   # the two likelihoods differ: the weights matter
+    # the run ends on the full likelihood (the last sweep is a material update, which scores its own image)
+    final, _ = full_kernels.score(rows.state.position, index, model.observation)
+    np.testing.assert_allclose(rows.state.loglikelihood, np.asarray(final), rtol=1e-5, atol=1e-2)
+
+
 def test_bridge_from_p3_adds_the_neural_terms_evidence(fitted):
     """The bridge from P3's particles to NP3 (:func:`mitsuba_p3.infer.bridge.bridge`): with a neural weight
     of zero it changes no evidence and takes one step; with the real weight and one step (a low ESS

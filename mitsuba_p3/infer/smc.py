@@ -64,6 +64,7 @@ from ..fit.noise import SCORING_WINDOW
 from ..space import SLICES
 from . import tempering
 from .evidence import decision, island_gap, island_range, mark_lost_runs, object_evidence, pooled_evidence
+from .coarse import coarse_view
 from .hypotheses import Hypotheses, footprint_start, hypotheses_of, initial_particles
 from .smc_moves import kernels as make_kernels
 from .smc_moves import mover
@@ -84,6 +85,9 @@ class SMCConfig:
     # draws), the step after them resamples down to particles: width where the pose is chosen
     wide: int = 1
     wide_steps: int = 0
+    # the wide start scored at 1 / coarse of the resolution (2: a quarter of the pixels, so wide = 4 costs
+    # about what the default's first steps cost); the step after it reweights to the full resolution
+    coarse: int = 1
     footprint: bool = True         # half of the first step's draws placed from the image's footprint
     kinds: bool = False            # material kinds as hypotheses of their own (else within each shape)
     ridge: int = 3                 # ridge moves (colour x s, weights / s; no render) after every walk
@@ -113,9 +117,12 @@ class SMCConfig:
         check_counts(self, {"particles": 4, "oversample": 1, "mcmc_steps": 1, "material_every": 1, "final_steps": 0,
                             "gradient_steps": 0, "final_gradient_steps": 0, "islands": 1, "rounds": 1,
                             "max_temperatures": 1, "draws": 4, "seed": 0, "ridge": 0, "waste_free": 0, "wide": 1,
-                            "wide_steps": 0}, "smc ")
+                            "wide_steps": 0, "coarse": 1}, "smc ")
         if self.wide_steps and self.wide > 1 and (self.persistent or self.waste_free > 1):
             raise ConfigError("smc wide start excludes persistent sampling and waste-free SMC")
+        if self.coarse > 1 and not (self.wide_steps and self.wide > 1):
+            raise ConfigError("smc coarse scores a wide start at a lower resolution: it needs wide > 1 and "
+                              "wide-steps > 0")
         if self.wide > self.oversample:
             raise ConfigError(f"smc wide ({self.wide}) cannot exceed oversample ({self.oversample}): the wide "
                               "start is resampled from the oversampled draws")
@@ -210,16 +217,29 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
     draws = initial_particles(core.prior, rng, config.particles * config.oversample, rows)
     image = observation["image"] if image is None else image
     offset = footprint_start(core, image, draws, rng) if config.footprint else None
-    state = tempering.init(draws, *kernels.score(jnp.asarray(draws), index_j, observation))
     # waste-free: resample N / P and keep every state of the P - 1 sweeps that follow
     free = config.waste_free > 1
-    move = mover(kernels, index_j, observation, config.waste_free - 1 if free else config.mcmc_steps,
-                 config.material_every, final_sweeps=0 if free else config.final_steps, path=free,
-                 gradient_sweeps=config.gradient_steps, final_gradient_sweeps=config.final_gradient_steps)
+
+    def moves(kernels, observation):
+        return mover(kernels, index_j, observation, config.waste_free - 1 if free else config.mcmc_steps,
+                     config.material_every, final_sweeps=0 if free else config.final_steps, path=free,
+                     gradient_sweeps=config.gradient_steps, final_gradient_sweeps=config.final_gradient_steps)
+
+    move = moves(kernels, observation)
     kept = config.particles // config.waste_free if free else None
     width = config.wide if config.wide_steps else 1      # a wide start's particles per particle
+    # a coarse wide start (:mod:`mitsuba_p3.infer.coarse`): its steps score and move at 1 / coarse of the resolution
+    coarse = coarse_view(core, observation, image, config.coarse) if width > 1 and config.coarse > 1 else None
+    if coarse:
+        start_kernels, start_observation = make_kernels(coarse[0], config.kinds, config.ridge), coarse[1]
+        start_move = moves(start_kernels, start_observation)
+    else:
+        start_kernels, start_observation, start_move = kernels, observation, move
+    state = tempering.init(draws, *start_kernels.score(jnp.asarray(draws), index_j, start_observation))
     steps, pool = [], None
-    while len(steps) < config.max_temperatures and not np.all(state.tempering >= 1.0):
+    # (a coarse start that reached lambda = 1 still changes to the full likelihood before the run ends)
+    while len(steps) < config.max_temperatures and (not np.all(state.tempering >= 1.0)
+                                                    or coarse and len(steps) <= config.wide_steps):
         key, k_step = jax.random.split(key)
         first, force = not steps, len(steps) + 1 == config.max_temperatures
         if pool is not None:        # persistent sampling: reweight and resample the pool of every step so far
@@ -227,11 +247,19 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
         else:
             # the first step keeps N (wide x N during a wide start) of the oversampled draws; the step after
             # the wide start resamples down to N
-            count = kept or (width * config.particles if first else
-                             config.particles if width > 1 and len(steps) == config.wide_steps else None)
-            state, info = tempering.step(k_step, state, move,
+            last_wide = width > 1 and len(steps) == config.wide_steps
+            count = kept or (width * config.particles if first else config.particles if last_wide else None)
+            change = None
+            if coarse and last_wide:
+                # from the coarse target to the full one at the same lambda: each particle's weight is the
+                # ratio of the two tempered likelihoods, so the evidence stays the full likelihood's
+                fine, _ = kernels.score(jnp.asarray(state.position), index_j, observation)
+                fine = np.asarray(fine, np.float64)
+                change = state.tempering[:, None] * (fine - state.loglikelihood)
+                state = state._replace(loglikelihood=fine.astype(np.float32))
+            state, info = tempering.step(k_step, state, start_move if len(steps) < config.wide_steps else move,
                                          config.target_ess / (config.oversample / width if first else 1),
-                                         count=count, offset=offset if first else None, force=force)
+                                         count=count, offset=offset if first else change, force=force)
             if config.persistent:
                 pool = tempering.pool_add(None, state, config.max_temperatures)
         steps.append(tempering.record(info, index))

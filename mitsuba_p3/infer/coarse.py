@@ -1,0 +1,55 @@
+"""A coarse view of one image's likelihood: the same scene scored at 1 / f of the resolution.
+
+The SMC's first temperatures choose where the object is; the likelihood there is raised to a
+small lambda, so its fine detail barely counts, and a wide start (many particles while the pose
+is chosen) pays for every pixel of every particle. Scored on a box-averaged image at a 1 / f
+grid, a render has f^2 times fewer pixels, so f^2 times the particles cost what the full
+resolution's first steps cost.
+
+The coarse likelihood is the full one's noise model with its power multiplied by f^2 (at most 1):
+a box of f x f pixels of a residual field correlated over many pixels is about as variable as one
+of them, so f^2 fewer pixels at f^2 the power keep about the same total evidence, and the
+particles the coarse steps leave are near where the full likelihood wants them. Nothing else
+depends on it being right: the SMC reweights by the ratio of the two tempered likelihoods where
+it changes from the coarse target to the full one (:func:`mitsuba_p3.infer.smc.temper`), so its
+evidence estimates the full likelihood's, whatever the coarse one is.
+
+It is P3's colour likelihood even for NP3 (VGG16's features of a 28 x 36 window mean little), and
+the spectral noise form has no spectrum fitted at the coarse size: it is refused there.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+
+def downsample(image: np.ndarray, factor: int) -> np.ndarray:
+    """(H, W, C) -> (H / f, W / f, C): the mean of each f x f box (H and W multiples of f)."""
+    height, width = image.shape[:2]
+    boxes = np.asarray(image, np.float32).reshape(height // factor, factor, width // factor, factor, -1)
+    return boxes.mean(axis=(1, 3))
+
+
+def coarse_view(core, observation: dict, image: np.ndarray, factor: int):
+    """(coarse core, coarse observation) of ``observation`` (a window of the whole ``image``, or all
+    of it) at 1 / ``factor`` of ``core``'s resolution; None where the image's size is not a
+    multiple of ``factor``."""
+    from ..errors import InferenceError
+    from .model import PosteriorCore
+
+    if core.config.spectral:
+        raise InferenceError("a coarse start needs a pixel noise model: the spectral form has no spectrum "
+                             "fitted at the coarse size (use --noise fitted, or smc.coarse=1)")
+    height, width = core.renderer.height, core.renderer.width
+    if height % factor or width % factor or np.shape(image)[:2] != (height, width):
+        return None
+    likelihood = replace(core.config, kind="p3", power=min(1.0, core.config.power * factor ** 2))
+    coarse = PosteriorCore.shared(core.fitted, likelihood, core.renderer_kind, height // factor, width // factor)
+    small = downsample(image, factor)
+    if "window" not in observation:
+        return coarse, coarse.observe(small)
+    top, left = (int(v) // factor for v in observation["window"])
+    rows, cols = (max(8, n // factor) for n in np.shape(observation["image"])[:2])
+    top, left = min(top, height // factor - rows), min(left, width // factor - cols)
+    return coarse, coarse.observe(small, (top, left, rows, cols))
