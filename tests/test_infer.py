@@ -807,6 +807,11 @@ def test_a_coarse_start_scores_at_half_the_resolution_then_changes_to_the_full_l
     rows = temper(model.core, model.observation, index, config, np.random.default_rng(0), jax.random.PRNGKey(0))
     coarse, small = coarse_view(model.core, model.observation, observed, 2)
     assert (coarse.renderer.height, coarse.renderer.width, coarse.config.power) == (60, 80, pytest.approx(0.2))
+    assert coarse.config.sigma == pytest.approx(0.03)
+    # where the power reaches 1 the rest of the f^2 goes into sigma: power 0.5 x 4 = 1 x (0.03 / sqrt(2))^-2 / 0.03^-2
+    steep = PosteriorModel(fitted, observed, LikelihoodConfig("p3", sigma=0.03, power=0.5, shadows=True))
+    (power, sigma) = (lambda c: (c.power, c.sigma))(coarse_view(steep.core, steep.observation, observed, 2)[0].config)
+    assert (power, sigma) == (1.0, pytest.approx(0.03 * np.sqrt(0.5)))
     assert [c[2].position.shape[1] for c in calls[:3]] == [32, 32, 8]
     full_kernels, coarse_kernels = make_kernels(model.core, False, config.ridge), make_kernels(coarse, False, config.ridge)
     # before the change the cache is the coarse likelihood's; at it, the weights are lambda (full - coarse)

@@ -6,10 +6,12 @@ is chosen) pays for every pixel of every particle. Scored on a box-averaged imag
 grid, a render has f^2 times fewer pixels, so f^2 times the particles cost what the full
 resolution's first steps cost.
 
-The coarse likelihood is the full one's noise model with its power multiplied by f^2 (at most 1):
-a box of f x f pixels of a residual field correlated over many pixels is about as variable as one
-of them, so f^2 fewer pixels at f^2 the power keep about the same total evidence, and the
-particles the coarse steps leave are near where the full likelihood wants them. Nothing else
+The coarse likelihood is the full one's noise model with its precision (power / sigma^2) multiplied
+by f^2: f^2 fewer pixels at f^2 the precision keep about the same total evidence, whether the
+residual is correlated over many pixels (a box is about as variable as one pixel; the fitted power
+1 / correlation area rises f^2-fold) or white (a box mean's variance is sigma^2 / f^2; at power 1
+sigma falls f-fold), so the particles the coarse steps leave are near where the full likelihood
+wants them, and the change's weights stay even. Nothing else
 depends on it being right: the SMC reweights by the ratio of the two tempered likelihoods where
 it changes from the coarse target to the full one (:func:`mitsuba_p3.infer.smc.temper`), so its
 evidence estimates the full likelihood's, whatever the coarse one is.
@@ -44,7 +46,9 @@ def coarse_view(core, observation: dict, image: np.ndarray, factor: int):
     height, width = core.renderer.height, core.renderer.width
     if height % factor or width % factor or np.shape(image)[:2] != (height, width):
         return None
-    likelihood = replace(core.config, kind="p3", power=min(1.0, core.config.power * factor ** 2))
+    power = min(1.0, core.config.power * factor ** 2)
+    sigma = core.config.sigma * np.sqrt(power / (core.config.power * factor ** 2))
+    likelihood = replace(core.config, kind="p3", power=power, sigma=float(sigma))
     coarse = PosteriorCore.shared(core.fitted, likelihood, core.renderer_kind, height // factor, width // factor)
     small = downsample(image, factor)
     if "window" not in observation:
