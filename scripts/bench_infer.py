@@ -28,7 +28,8 @@ run resumes), then prints JSON, the settings side by side:
 Settings: ``smc`` is the default of ``infer`` (tempered SMC over the shape classes,
 the fitted Gaussian noise model with hard shadows); ``smc-robust`` the same with the fitted
 inlier/outlier mixture; ``smc-persistent`` and ``smc-wastefree`` the default with persistent
-sampling or waste-free SMC (8 sweeps kept from 32 of 256 particles); ``mh-paper`` the MH evaluation preset with the paper's likelihood
+sampling or waste-free SMC (8 sweeps kept from 32 of 256 particles); ``smc-narrow`` the default without its
+coarse wide start (the default before 2026-11-26); ``mh-paper`` the MH evaluation preset with the paper's likelihood
 (sigma 1, no shadows), the project's old default; ``mh-fitted`` that sampler with the fitted
 noise. ``NAME:S`` runs a setting with S seeds instead of ``--seeds``. Needs a benchmark folder
 and a model fitted to it:
@@ -62,8 +63,9 @@ from mitsuba_p3.infer.smc import SMCConfig
 CONFIGS = {"mh-paper": {"noise": "paper"}, "mh-fitted": {"noise": "fitted"},
            "smc": {"noise": "fitted", "sampler": SMCConfig()}, "smc-robust": {"noise": "robust", "sampler": SMCConfig()},
            # the moves issue 40 asked to compare (docs/notebook.md): persistent sampling, waste-free SMC
-           "smc-persistent": {"noise": "fitted", "sampler": SMCConfig(persistent=True)},
-           "smc-wastefree": {"noise": "fitted", "sampler": SMCConfig(waste_free=8, particles=256)}}
+           "smc-persistent": {"noise": "fitted", "sampler": SMCConfig(persistent=True, wide_steps=0)},
+           "smc-wastefree": {"noise": "fitted", "sampler": SMCConfig(waste_free=8, particles=256, wide_steps=0)},
+           "smc-narrow": {"noise": "fitted", "sampler": SMCConfig(wide_steps=0)}}
 CHECKED = ("shift", "scale", "colour")
 
 

@@ -734,18 +734,16 @@ def test_smc_runs_every_hypothesis_and_keeps_their_evidence(fitted, tmp_path, ki
 @pytest.mark.slow
 def test_a_wide_start_keeps_more_particles_first_then_the_configured_count(fitted, monkeypatch):
     """With ``wide`` = 4 for ``wide_steps`` = 2, the runs move 4 N particles through their first two
-    temperatures and end with N; the start cannot be wider than the oversampled draws it comes from."""
+    temperatures and end with N."""
     from mitsuba_p3.errors import ConfigError
     from mitsuba_p3.infer.smc import SMCConfig, sample_smc
 
-    with pytest.raises(ConfigError, match="oversample"):
-        SMCConfig(wide=16, wide_steps=2)
     with pytest.raises(ConfigError, match="persistent"):
         SMCConfig(wide=4, wide_steps=2, persistent=True)
     observed = make_renderer_image(fitted)
     model = PosteriorModel(fitted, observed, LikelihoodConfig("p3", sigma=0.03, power=0.05, shadows=True))
     config = SMCConfig(particles=8, mcmc_steps=1, final_steps=1, draws=40, window=None, islands=1,
-                       wide=4, wide_steps=2)
+                       wide=4, wide_steps=2, coarse=1)
     from mitsuba_p3.infer import tempering
 
     counts, step = [], tempering.step
@@ -762,7 +760,7 @@ def test_a_wide_start_keeps_more_particles_first_then_the_configured_count(fitte
     assert run.particles.rows.state.position.shape[1] == 8
 
 
-def test_a_coarse_view_is_the_box_mean_and_needs_a_wide_start():
+def test_a_coarse_view_is_the_box_mean_and_the_default_start():
     from mitsuba_p3.errors import ConfigError
     from mitsuba_p3.infer.coarse import downsample
     from mitsuba_p3.infer.smc import SMCConfig
@@ -771,10 +769,11 @@ def test_a_coarse_view_is_the_box_mean_and_needs_a_wide_start():
     small = downsample(image, 2)
     assert small.shape == (2, 3, 3)
     np.testing.assert_allclose(small[1, 2], image[2:4, 4:6].mean(axis=(0, 1)))
-    with pytest.raises(ConfigError, match="wide"):
-        SMCConfig(coarse=2)
-    with pytest.raises(ConfigError, match="wide"):
-        SMCConfig(coarse=2, wide=4)
+    # the default is a coarse wide start; persistent sampling and waste-free SMC need it turned off
+    assert (SMCConfig().wide, SMCConfig().wide_steps, SMCConfig().coarse) == (4, 6, 2)
+    with pytest.raises(ConfigError, match="wide_steps=0"):
+        SMCConfig(persistent=True)
+    SMCConfig(persistent=True, wide_steps=0)
 
 
 @pytest.mark.slow

@@ -330,7 +330,7 @@ def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: Evaluati
         if isinstance(previous.get("sampler"), dict) and "particles" in previous["sampler"]:
             previous["sampler"].setdefault("bridge", False)     # an SMC record from before the bridge
         if isinstance(previous.get("sampler"), dict):
-            # a setting added to the sampler after the record was written was, at its default, not in play
+            # a setting added to the sampler after the record was written was, at its default then, not in play
             previous["sampler"] = {**_sampler_defaults(previous["sampler"]), **previous["sampler"]}
         if _np3_start_changed(previous, record):
             # the bridge decides how NP3's posteriors were made, and nothing of P3's
@@ -351,15 +351,22 @@ def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: Evaluati
     atomic_json(path, record)
 
 
+# SMC settings whose default changed after they were added: a record without them was made before they
+# existed, when the run had no wide start (the coarse wide start became the default on 2026-11-26)
+SMC_DEFAULTS_BEFORE = {"wide": 1, "wide_steps": 0, "coarse": 1}
+
+
 def _sampler_defaults(sampler: dict) -> dict:
-    """Every field of the sampler config a run record's sampler is (SMC if it has particles), at its
-    default, as run.json holds it."""
+    """Every field of the sampler config a run record's sampler is (SMC if it has particles), at the
+    default it had before the field existed, as run.json holds it."""
     from dataclasses import asdict
 
     from ..infer.mcmc import SamplerConfig
     from ..infer.smc import SMCConfig
 
-    return json.loads(json.dumps(asdict(SMCConfig() if "particles" in sampler else SamplerConfig())))
+    if "particles" not in sampler:
+        return json.loads(json.dumps(asdict(SamplerConfig())))
+    return json.loads(json.dumps({**asdict(SMCConfig()), **SMC_DEFAULTS_BEFORE}))
 
 
 def _bridge(record: dict):

@@ -16,8 +16,9 @@ depends on it being right: the SMC reweights by the ratio of the two tempered li
 it changes from the coarse target to the full one (:func:`mitsuba_p3.infer.smc.temper`), so its
 evidence estimates the full likelihood's, whatever the coarse one is.
 
-It is P3's colour likelihood even for NP3 (VGG16's features of a 28 x 36 window mean little), and
-the spectral noise form has no spectrum fitted at the coarse size: it is refused there.
+It is P3's colour likelihood even for NP3 (VGG16's features of a 28 x 36 window mean little). The
+spectral noise form has no spectrum fitted at the coarse size, and an image whose size is not a
+multiple of f has no exact box grid: their wide start runs at the full resolution.
 """
 from __future__ import annotations
 
@@ -35,16 +36,12 @@ def downsample(image: np.ndarray, factor: int) -> np.ndarray:
 
 def coarse_view(core, observation: dict, image: np.ndarray, factor: int):
     """(coarse core, coarse observation) of ``observation`` (a window of the whole ``image``, or all
-    of it) at 1 / ``factor`` of ``core``'s resolution; None where the image's size is not a
-    multiple of ``factor``."""
-    from ..errors import InferenceError
+    of it) at 1 / ``factor`` of ``core``'s resolution; None (score at the full resolution) under the
+    spectral noise form or where the image's size is not a multiple of ``factor``."""
     from .model import PosteriorCore
 
-    if core.config.spectral:
-        raise InferenceError("a coarse start needs a pixel noise model: the spectral form has no spectrum "
-                             "fitted at the coarse size (use --noise fitted, or smc.coarse=1)")
     height, width = core.renderer.height, core.renderer.width
-    if height % factor or width % factor or np.shape(image)[:2] != (height, width):
+    if core.config.spectral or height % factor or width % factor or np.shape(image)[:2] != (height, width):
         return None
     power = min(1.0, core.config.power * factor ** 2)
     sigma = core.config.sigma * np.sqrt(power / (core.config.power * factor ** 2))

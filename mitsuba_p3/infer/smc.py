@@ -82,12 +82,15 @@ class SMCConfig:
     gradient_steps: int = 0
     final_gradient_steps: int = 0
     # a wide start: the first wide_steps temperatures keep wide x particles (resampled from the oversampled
-    # draws), the step after them resamples down to particles: width where the pose is chosen
-    wide: int = 1
-    wide_steps: int = 0
+    # draws, so at most oversample x), the step after them resamples down to particles: width where the pose
+    # is chosen
+    wide: int = 4
+    wide_steps: int = 6
     # the wide start scored at 1 / coarse of the resolution (2: a quarter of the pixels, so wide = 4 costs
-    # about what the default's first steps cost); the step after it reweights to the full resolution
-    coarse: int = 1
+    # about what full-resolution first steps cost; 1: at the full resolution); the step after it reweights
+    # to the full likelihood. Chosen on fsclvr's and room's train images: island gap median 3.4 -> 1.5 and
+    # 4.4 -> 3.2 nats at 1.16 and 1.09 times the seconds (docs/notebook.md, "A coarse wide start")
+    coarse: int = 2
     footprint: bool = True         # half of the first step's draws placed from the image's footprint
     kinds: bool = False            # material kinds as hypotheses of their own (else within each shape)
     ridge: int = 3                 # ridge moves (colour x s, weights / s; no render) after every walk
@@ -119,13 +122,8 @@ class SMCConfig:
                             "max_temperatures": 1, "draws": 4, "seed": 0, "ridge": 0, "waste_free": 0, "wide": 1,
                             "wide_steps": 0, "coarse": 1}, "smc ")
         if self.wide_steps and self.wide > 1 and (self.persistent or self.waste_free > 1):
-            raise ConfigError("smc wide start excludes persistent sampling and waste-free SMC")
-        if self.coarse > 1 and not (self.wide_steps and self.wide > 1):
-            raise ConfigError("smc coarse scores a wide start at a lower resolution: it needs wide > 1 and "
-                              "wide-steps > 0")
-        if self.wide > self.oversample:
-            raise ConfigError(f"smc wide ({self.wide}) cannot exceed oversample ({self.oversample}): the wide "
-                              "start is resampled from the oversampled draws")
+            raise ConfigError("smc wide start excludes persistent sampling and waste-free SMC (with them, set "
+                              "smc.wide_steps=0)")
         if not 0.0 < self.target_ess < 1.0:
             raise ConfigError(f"smc target-ess must lie in (0, 1); got {self.target_ess}")
         if self.waste_free > 1 and (self.particles % self.waste_free or self.persistent):
@@ -227,7 +225,8 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
 
     move = moves(kernels, observation)
     kept = config.particles // config.waste_free if free else None
-    width = config.wide if config.wide_steps else 1      # a wide start's particles per particle
+    # a wide start's particles per particle, at most the oversampled draws it is resampled from
+    width = min(config.wide, config.oversample) if config.wide_steps else 1
     # a coarse wide start (:mod:`mitsuba_p3.infer.coarse`): its steps score and move at 1 / coarse of the resolution
     coarse = coarse_view(core, observation, image, config.coarse) if width > 1 and config.coarse > 1 else None
     if coarse:
