@@ -25,6 +25,12 @@ window centred on the largest connected part of the image's footprint
 only those pixels. Every hypothesis is scored on the same pixels, so their evidences stay
 comparable; an image whose footprint does not fit the window is scored whole.
 
+**A coarse wide start.** The first ``wide_steps`` temperatures, where the pose is chosen, move
+``wide`` x N particles scored at 1 / ``coarse`` of the resolution (:mod:`mitsuba_p3.infer.coarse`:
+four times the particles for the pixels' cost at the default 2); the step after them weighs each
+particle by the ratio of the full and the coarse tempered likelihoods and resamples to N, so the
+evidence stays the full likelihood's.
+
 **Islands and rounds.** ``islands=k`` runs k independent SMCs per hypothesis; their unbiased
 estimates of Z_h pool as their mean (:mod:`mitsuba_p3.infer.evidence`), and their spread is the
 run's convergence diagnostic (the island gap). ``rounds=r`` spends more runs only where the
@@ -64,6 +70,7 @@ from ..fit.noise import SCORING_WINDOW
 from ..space import SLICES
 from . import tempering
 from .evidence import decision, island_gap, island_range, mark_lost_runs, object_evidence, pooled_evidence
+from .budget import GPU_PARTICLES, check_sampler_memory, default_particles  # noqa: F401 (re-exported)
 from .coarse import coarse_view
 from .hypotheses import Hypotheses, footprint_start, hypotheses_of, initial_particles
 from .smc_moves import kernels as make_kernels
@@ -141,25 +148,6 @@ class SMCConfig:
 
 
 
-# SMC particles per hypothesis and run where the JAX tracer renders on a GPU: 8x the CPU's default
-# in 6x its time there (0.66 -> 3.9 s per posterior on an H200), and two seeds' runs agree better
-# (same shape 85 -> 95% of train images, island gap median 2.9 -> 1.5 nats): results/gpu/README.md
-GPU_PARTICLES = 512
-
-
-def default_particles(renderer: str = "mitsuba", platform: str | None = None) -> int:
-    """The SMC's particles per hypothesis for a renderer where this runs: :data:`GPU_PARTICLES` for the
-    JAX tracer on a GPU, else :attr:`SMCConfig.particles` (Mitsuba's callbacks on a GPU are bound by
-    launches and copies, not width: results/gpu/README.md)."""
-    if renderer != "jax":
-        return SMCConfig.particles
-    if platform is None:
-        import jax
-
-        platform = jax.default_backend()
-    return GPU_PARTICLES if platform == "gpu" else SMCConfig.particles
-
-
 class SMCState(NamedTuple):
     """The final particles of some rows: positions (R, N, d), log likelihoods and log priors (R, N)."""
     position: np.ndarray
@@ -225,8 +213,10 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
 
     move = moves(kernels, observation)
     kept = config.particles // config.waste_free if free else None
-    # a wide start's particles per particle, at most the oversampled draws it is resampled from
-    width = min(config.wide, config.oversample) if config.wide_steps else 1
+    # a wide start's particles per particle, at most the oversampled draws it is resampled from; it ends a
+    # step before the last temperature a run may take, so a coarse one always changes to the full likelihood
+    wide_steps = min(config.wide_steps, config.max_temperatures - 1)
+    width = min(config.wide, config.oversample) if wide_steps else 1
     # a coarse wide start (:mod:`mitsuba_p3.infer.coarse`): its steps score and move at 1 / coarse of the resolution
     coarse = coarse_view(core, observation, image, config.coarse) if width > 1 and config.coarse > 1 else None
     if coarse:
@@ -238,7 +228,7 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
     steps, pool = [], None
     # (a coarse start that reached lambda = 1 still changes to the full likelihood before the run ends)
     while len(steps) < config.max_temperatures and (not np.all(state.tempering >= 1.0)
-                                                    or coarse and len(steps) <= config.wide_steps):
+                                                    or coarse and len(steps) <= wide_steps):
         key, k_step = jax.random.split(key)
         first, force = not steps, len(steps) + 1 == config.max_temperatures
         if pool is not None:        # persistent sampling: reweight and resample the pool of every step so far
@@ -246,7 +236,7 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
         else:
             # the first step keeps N (wide x N during a wide start) of the oversampled draws; the step after
             # the wide start resamples down to N
-            last_wide = width > 1 and len(steps) == config.wide_steps
+            last_wide = width > 1 and len(steps) == wide_steps
             count = kept or (width * config.particles if first else config.particles if last_wide else None)
             change = None
             if coarse and last_wide:
@@ -256,7 +246,7 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
                 fine = np.asarray(fine, np.float64)
                 change = state.tempering[:, None] * (fine - state.loglikelihood)
                 state = state._replace(loglikelihood=fine.astype(np.float32))
-            state, info = tempering.step(k_step, state, start_move if len(steps) < config.wide_steps else move,
+            state, info = tempering.step(k_step, state, start_move if len(steps) < wide_steps else move,
                                          config.target_ess / (config.oversample / width if first else 1),
                                          count=count, offset=offset if first else change, force=force)
             if config.persistent:
@@ -291,25 +281,6 @@ def _rounds(core, observation, image, space: Hypotheses, config: SMCConfig, rng,
         if decided or len(contenders) < 2:
             break
     return rows, pooled, len(parts)
-
-
-def check_sampler_memory(config: SMCConfig, hypotheses: int, pixels: int, limit: float | None = None) -> None:
-    """Refuse, before any render, settings whose widest step (the first reweighting: every hypothesis's
-    ``islands`` x ``particles`` x ``oversample`` draws of ``pixels`` each, as material bases) would need
-    more memory than ``limit`` bytes (default: the renderer's, :func:`~mitsuba_p3.render.contract.memory_limit`),
-    with the largest particle count that fits."""
-    from ..errors import InferenceError
-    from ..render.contract import BYTES_PER_PIXEL, memory_limit
-
-    limit = memory_limit() if limit is None else limit
-    renders = hypotheses * config.islands * config.particles * config.oversample
-    need = renders * pixels * BYTES_PER_PIXEL["bases"]
-    if need > limit:
-        fits = int(limit // (hypotheses * config.islands * config.oversample * pixels * BYTES_PER_PIXEL["bases"]))
-        raise InferenceError(f"{config.particles:,} particles: the SMC's first step renders {renders:,} images of "
-                             f"{pixels:,} pixels, about {need / 2 ** 30:,.1f} GB, over the limit of "
-                             f"{limit / 2 ** 30:.1f} GB; use --particles {max(fits, 4)} or fewer (or set "
-                             "MITSUBA_P3_MEMORY_GB)")
 
 
 def sample_smc(core, observation, config: SMCConfig | None = None,
