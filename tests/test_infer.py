@@ -915,6 +915,17 @@ def test_sbc_ranks_are_uniform_for_an_exact_posterior_and_not_for_a_narrow_one()
     assert not any(summary["ecdf_inside_95_band"].values()) and summary["class"]["ece"] > 0.3
 
 
+def test_an_sbc_cache_made_before_the_wide_start_became_the_default_is_not_resumed_under_it():
+    """An SBC cache's tag names the settings that differ from the first caches' defaults: one made
+    without the wide start (tag "{}") does not match today's default, which names its wide start."""
+    from mitsuba_p3.evaluate.sbc import settings_tag
+    from mitsuba_p3.infer.smc import SMCConfig
+
+    assert settings_tag(SMCConfig(wide=1, wide_steps=0, coarse=1, seed=5)) == "{}"
+    assert json.loads(settings_tag(SMCConfig())) == {"wide": 4, "wide_steps": 6, "coarse": 2}
+    assert json.loads(settings_tag(SMCConfig(islands=3)))["islands"] == 3
+
+
 def test_sbc_runs_on_the_phong_model_and_resumes(fitted, tmp_path):
     """A tiny SBC of the SMC on the Phong model: ranks in range, class probabilities a distribution,
     a second call with the same cache continues the first run instead of redoing it, and one under

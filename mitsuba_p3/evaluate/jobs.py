@@ -351,22 +351,17 @@ def check_run(run_dir: Path, dataset: Dataset, model_dir: Path, config: Evaluati
     atomic_json(path, record)
 
 
-# SMC settings whose default changed after they were added: a record without them was made before they
-# existed, when the run had no wide start (the coarse wide start became the default on 2026-11-26)
-SMC_DEFAULTS_BEFORE = {"wide": 1, "wide_steps": 0, "coarse": 1}
-
-
 def _sampler_defaults(sampler: dict) -> dict:
     """Every field of the sampler config a run record's sampler is (SMC if it has particles), at the
     default it had before the field existed, as run.json holds it."""
     from dataclasses import asdict
 
     from ..infer.mcmc import SamplerConfig
-    from ..infer.smc import SMCConfig
+    from ..infer.smc import DEFAULTS_BEFORE, SMCConfig
 
     if "particles" not in sampler:
         return json.loads(json.dumps(asdict(SamplerConfig())))
-    return json.loads(json.dumps({**asdict(SMCConfig()), **SMC_DEFAULTS_BEFORE}))
+    return json.loads(json.dumps({**asdict(SMCConfig()), **DEFAULTS_BEFORE}))
 
 
 def _bridge(record: dict):

@@ -230,6 +230,17 @@ def model_core(model_dir, renderer: str = "mitsuba", resolution: tuple[int, int]
     return PosteriorCore(fitted, likelihood, renderer, *resolution)
 
 
+def settings_tag(config) -> str:
+    """An SBC cache's tag: the SMC settings that differ from the defaults of the first caches (whose tags
+    name nothing else, :data:`~mitsuba_p3.infer.smc.DEFAULTS_BEFORE`), so a cache made before a default
+    changed is not resumed under the new one."""
+    from ..infer.smc import DEFAULTS_BEFORE
+
+    defaults = {f.name: DEFAULTS_BEFORE.get(f.name, f.default) for f in dataclasses.fields(config)}
+    return json.dumps({name: getattr(config, name) for name, default in defaults.items()
+                       if getattr(config, name) != default and name != "seed"}, sort_keys=True)
+
+
 def calibrate_model(model_dir, out, images: int = 200, draws: int = 99, resolution: tuple[int, int] = (120, 160),
                     seed: int = 0, noise: str = "fitted", progress=None, config=None) -> dict:
     """SBC of the default sampler (tempered SMC) on a fitted model's own renders: ``images`` simulations
@@ -247,10 +258,8 @@ def calibrate_model(model_dir, out, images: int = 200, draws: int = 99, resoluti
     core, out = model_core(model_dir, "mitsuba", resolution, noise), Path(out)
     out.mkdir(parents=True, exist_ok=True)
     config = config or SMCConfig()
-    changed = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)
-               if getattr(config, f.name) != f.default and f.name != "seed"}
     result = run_sbc(core, smc_sampler(core, config), images, draws, seed, cache=out / "cache.npz", progress=progress,
-                     tag=json.dumps(changed, sort_keys=True))
+                     tag=settings_tag(config))
     summary = {"model": str(model_dir), "noise": noise, "likelihood_sigma": core.config.sigma,
                "smc": dataclasses.asdict(config), **result.summary()}
     atomic_json(out / "sbc.json", summary)

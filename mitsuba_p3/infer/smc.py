@@ -77,6 +77,11 @@ from .smc_moves import kernels as make_kernels
 from .smc_moves import mover
 
 
+# Settings whose default changed after they were added, at the value they had before: a record (an
+# evaluation's run.json, an SBC cache's tag) that does not name them was made without a wide start
+DEFAULTS_BEFORE = {"wide": 1, "wide_steps": 0, "coarse": 1}
+
+
 @dataclass(frozen=True)
 class SMCConfig:
     particles: int = 64            # per hypothesis and run
