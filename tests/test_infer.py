@@ -869,7 +869,8 @@ def test_np3_under_smc_is_p3_then_the_bridge(fitted):
     from mitsuba_p3.infer.smc import SMCConfig
 
     observed = make_renderer_image(fitted)
-    config = SMCConfig(particles=8, mcmc_steps=1, final_steps=1, draws=40, window=None)
+    # (without the wide start, which is not what this tests: one compilation less)
+    config = SMCConfig(wide_steps=0, particles=8, mcmc_steps=1, final_steps=1, draws=40, window=None)
     p3, np3 = (LikelihoodConfig(kind, sigma=0.03, power=0.05, shadows=True) for kind in ("p3", "np3"))
     by_hand = infer_image(fitted, observed, np3, config, start=infer_image(fitted, observed, p3, config).particles)
     bridged = infer_image(fitted, observed, np3, config)
@@ -1009,7 +1010,8 @@ def test_an_empty_floor_is_answered_as_nothing_and_an_object_as_one(fitted):
     from mitsuba_p3.render import make_renderer
 
     likelihood = LikelihoodConfig("p3", sigma=0.03, power=0.05, shadows=True)
-    config = SMCConfig(particles=4, oversample=4, mcmc_steps=1, final_steps=1, draws=40, islands=1)
+    # (without the wide start, which is not what this tests: one compilation less)
+    config = SMCConfig(wide_steps=0, particles=4, oversample=4, mcmc_steps=1, final_steps=1, draws=40, islands=1)
     renderer = make_renderer(fitted.scene(), "mitsuba", height=120, width=160, shadows=True)
     factors = {}
     for name, image in (("empty", renderer.render_empty()), ("object", renderer.render(TRUTH))):
