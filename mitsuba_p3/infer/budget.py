@@ -7,9 +7,9 @@ against the memory there is before anything renders.
 """
 from __future__ import annotations
 
-# SMC particles per hypothesis and run where the JAX tracer renders on a GPU: 8x the CPU's default
-# in 6x its time there (0.66 -> 3.9 s per posterior on an H200), and two seeds' runs agree better
-# (same shape 85 -> 95% of train images, island gap median 2.9 -> 1.5 nats): results/gpu/README.md
+# SMC particles per hypothesis and run where the JAX tracer renders on a GPU, chosen on 20 train images
+# x 2 seeds on an H200 under the coarse wide start: two seeds' runs agree best at 512 (island gap median
+# 2.0 nats at 64, 1.1 at 256, 0.9 at 512; 0.43, 0.99, 1.63 s per posterior): results/gpu/README.md
 GPU_PARTICLES = 512
 
 
