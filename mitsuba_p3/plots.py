@@ -329,9 +329,10 @@ def _tempering_panels(lam_ax, ess_ax, names: list, steps: Sequence[dict]) -> Non
                 label="walk acceptance")
     ess_ax.plot(x, [np.mean(r.get("material_acceptance", np.nan)) for r in steps], color="C2", lw=1,
                 label="material acceptance")
-    if any("gradient_acceptance" in r for r in steps):
-        ess_ax.plot(x, [np.mean(r.get("gradient_acceptance", np.nan)) for r in steps], color="C3", lw=1,
-                    label="gradient acceptance")
+    for colour, move in (("C3", "gradient"), ("C4", "turn")):
+        if any(f"{move}_acceptance" in r for r in steps):
+            ess_ax.plot(x, [np.mean(r.get(f"{move}_acceptance", np.nan)) for r in steps], color=colour, lw=1,
+                        label=f"{move} acceptance")
     ess_ax.set_ylim(0, 1.05)
     ess_ax.set_xlabel("step")
     ess_ax.legend(fontsize=6, loc="center left", framealpha=0.6)

@@ -202,13 +202,13 @@ def test_a_run_with_tuple_settings_resumes(bench, tmp_path):
         check_run(tmp_path, dataset, bench / "model", replace(config, sampler=SMCConfig(particles=4, window=(48, 64),
                                                                                         persistent=True, wide_steps=0)))
     # ... but one written before the wide start existed had none, whatever today's default: it does not resume
-    for key in ("wide", "wide_steps", "coarse"):
+    for key in ("wide", "wide_steps", "coarse", "symmetry"):
         del record["sampler"][key]
     (tmp_path / "run.json").write_text(json.dumps(record))
     with pytest.raises(EvaluationError, match="other settings"):
         check_run(tmp_path, dataset, bench / "model", config)
     check_run(tmp_path, dataset, bench / "model", replace(config, sampler=replace(config.sampler, wide_steps=0,
-                                                                                  coarse=1, wide=1)))
+                                                                                  coarse=1, wide=1, symmetry="free")))
 
 
 def test_the_bridge_setting_guards_only_np3_posteriors(bench, tmp_path):

@@ -293,6 +293,54 @@ def test_ridge_move_keeps_the_image_and_the_prior(fitted, observed):
                                atol=2e-5)
 
 
+def test_rendered_symmetry_move_is_exact(fitted, observed):
+    """The symmetry move's turn has the right Jacobian (with it, the log prior's change is the yaw
+    prior's ratio, also under a von Mises yaw prior), the SMC's rendered turn keeps every particle's
+    cached log likelihood equal to its render's, and, moving prior draws at lambda = 0, it leaves the
+    prior invariant (the yaw's logistic coordinate would drift without the Jacobian)."""
+    from dataclasses import replace
+
+    import jax
+    import jax.numpy as jnp
+    from scipy.stats import ks_2samp
+
+    from mitsuba_p3.fit.priors import Prior
+    from mitsuba_p3.infer.smc_moves import kernels
+    from mitsuba_p3.space import SLICES
+
+    model = PosteriorModel(fitted, observed, LikelihoodConfig("p3", sigma=0.05))
+    core, t = model.core, SLICES["theta"].start
+    tilted = Prior(replace(core.prior.config, theta_concentration=2.0), core.prior.gmms)
+    draws = np.asarray(core.prior.sample(np.random.default_rng(1), 400), np.float32)
+    turned, log_jacobian = jax.vmap(core.symmetry_turn)(jax.random.split(jax.random.PRNGKey(0), len(draws)), draws)
+    yaw = lambda z: -np.pi + 2 * np.pi * jax.nn.sigmoid(z[:, t])  # noqa: E731
+    np.testing.assert_allclose(jax.vmap(tilted.log_prob)(turned) - jax.vmap(tilted.log_prob)(draws) + log_jacobian,
+                               2.0 * (np.cos(yaw(turned)) - np.cos(yaw(draws))), atol=2e-3)
+    k = kernels(core, False, 0, "rendered")
+    index = jnp.zeros(2, jnp.int32)
+    # near the truth, where the likelihood is sharp: cached scores stay the renders' own
+    truth = model.prior.unconstrain({"shift": TRUTH["shift"][None], "theta": np.array([TRUTH["theta"]]),
+                                     "scale": TRUTH["scale"][None], "class_probabilities": np.array([[0.05, 0.9, 0.05]]),
+                                     **{key: np.asarray(TRUTH[key])[None] for key in
+                                        ("colour", "ambient", "diffuse", "specular", "shininess")}})[0]
+    near = jnp.asarray(truth + 0.02 * np.random.default_rng(2).normal(size=(2, 8, truth.size)), jnp.float32)
+    state = (near, *k.score(near, index, model.observation))
+    for i in range(3):
+        state, _, turn_rate = k.material(jax.random.PRNGKey(i), state, index, jnp.ones(2), model.observation)
+    assert np.all(np.isfinite(np.asarray(turn_rate)))
+    np.testing.assert_allclose(state[1], k.score(state[0], index, model.observation)[0], atol=0.05)
+    # at lambda = 0 the turns move prior draws and keep them prior draws
+    z = jnp.asarray(draws.reshape(2, 200, -1))
+    state = (z, *k.score(z, index, model.observation))
+    turn = jax.jit(lambda key, s: k.material(key, s, index, jnp.zeros(2), model.observation))
+    for i in range(10):
+        state, _, rate = turn(jax.random.PRNGKey(10 + i), state)
+    assert float(np.mean(rate)) > 0.3
+    moved = np.asarray(state[0]).reshape(len(draws), -1)
+    assert ks_2samp(np.asarray(yaw(moved)), np.asarray(core.prior.constrain(core.prior.sample(
+        np.random.default_rng(3), 2000))["theta"])).pvalue > 0.01
+
+
 def test_sampler_weighs_modes_correctly(fitted):
     """On a known target (three Gaussians, one per shape class, with weights 0.5, 0.3, 0.2) the
     mode jumps and walks give each class its probability: a wrong Hastings term would not.
@@ -922,8 +970,8 @@ def test_an_sbc_cache_made_before_the_wide_start_became_the_default_is_not_resum
     from mitsuba_p3.evaluate.sbc import settings_tag
     from mitsuba_p3.infer.smc import SMCConfig
 
-    assert settings_tag(SMCConfig(wide=1, wide_steps=0, coarse=1, seed=5)) == "{}"
-    assert json.loads(settings_tag(SMCConfig())) == {"wide": 4, "wide_steps": 6, "coarse": 2}
+    assert settings_tag(SMCConfig(wide=1, wide_steps=0, coarse=1, symmetry="free", seed=5)) == "{}"
+    assert json.loads(settings_tag(SMCConfig())) == {"wide": 4, "wide_steps": 6, "coarse": 2, "symmetry": "rendered"}
     assert json.loads(settings_tag(SMCConfig(islands=3)))["islands"] == 3
 
 

@@ -96,7 +96,7 @@ def successive_conditional(core, hypothesis: int, moves: str, chains: int, steps
             particles, accepted = k.walk(k_walk, particles, index, lam, tril, observation)
             rates.append(accepted[0])
         if moves in ("material", "both"):
-            particles, accepted = k.material(k_material, particles, index, lam, observation)
+            particles, accepted, _ = k.material(k_material, particles, index, lam, observation)
             rates.append(accepted[0])
         return particles[0][0, 0], jnp.mean(jnp.stack(rates))
 

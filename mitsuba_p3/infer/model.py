@@ -254,29 +254,52 @@ class PosteriorCore:
                       walk_move=self.symmetry_move, step_move=self.material_move if material_gibbs else None,
                       walk_mask=tuple(mask.tolist()))
 
-    def symmetry_move(self, key, state):
-        """An MH move over the primitives' exact symmetries; no render.
-
-        Turn the object by 90 degrees (swapping its x and y half-extents), or by 180
-        degrees. Every primitive (box, ellipsoid, elliptic cylinder) looks exactly the
-        same after it, so the likelihood does not change; the move is accepted with the
-        MH ratio of the yaw prior. Without it, chains stay in one of the four
-        equivalent yaw modes and R-hat never settles."""
+    def symmetry_turn(self, key, position):
+        """The symmetry move's proposal: ``position`` turned by 90, 180 or -90 degrees (each a third;
+        90 swaps the x and y half-extents), and log |det dz'/dz| (the yaw's logistic coordinate is
+        stretched by the turn). A turn's inverse is proposed as often as the turn, so the proposal is
+        symmetric up to that Jacobian. Returns (turned position, log Jacobian)."""
         import jax
         import jax.numpy as jnp
 
         t = SLICES["theta"].start
         sx, sy = SLICES["scale"].start, SLICES["scale"].start + 1
         turns = jnp.array([np.pi / 2, np.pi, -np.pi / 2])
-        k_choice, k_accept = jax.random.split(key)
-        choice = jax.random.randint(k_choice, (), 0, 3)
-        z = state.position
+        choice = jax.random.randint(key, (), 0, 3)
+        z = position
         theta = -jnp.pi + 2 * jnp.pi * jax.nn.sigmoid(z[t])
         turned = jnp.mod(theta + turns[choice] + jnp.pi, 2 * jnp.pi) - jnp.pi
         u = jnp.clip((turned + jnp.pi) / (2 * jnp.pi), 1e-7, 1 - 1e-7)
         new = z.at[t].set(jnp.log(u) - jnp.log1p(-u))
         swapped = new.at[sx].set(z[sy]).at[sy].set(z[sx])
         new = jnp.where(choice == 1, new, swapped)
+        # z = logit(u), u' = u + turn / 2 pi (mod 1): dz'/dz = u (1 - u) / (u' (1 - u'))
+        u0 = jax.nn.sigmoid(z[t])
+        log_jacobian = jnp.log(u0) + jnp.log1p(-u0) - jnp.log(u) - jnp.log1p(-u)
+        return new, log_jacobian
+
+    def symmetry_move(self, key, state):
+        """An MH move over the primitives' symmetries that does not render.
+
+        Turn the object by 90 degrees (swapping its x and y half-extents), or by 180
+        degrees (:meth:`symmetry_turn`). Every primitive (box, ellipsoid, elliptic
+        cylinder) is the same shape after it, so the likelihood is taken as unchanged and
+        the move is accepted with the MH ratio of the yaw prior. That holds only up to the
+        renderer's rasterisation: a row of outline pixels can flip, and the likelihood then
+        changes by tens of nats where the noise is small. The SMC's default therefore
+        renders the turn and accepts it with its likelihood
+        (:func:`mitsuba_p3.infer.smc_moves.kernels`, ``symmetry="rendered"``); this move serves
+        the MH sampler. Without either, chains stay in one of the four equivalent yaw modes and
+        R-hat never settles."""
+        import jax
+        import jax.numpy as jnp
+
+        t = SLICES["theta"].start
+        k_choice, k_accept = jax.random.split(key)
+        z = state.position
+        new, _ = self.symmetry_turn(k_choice, z)
+        theta = -jnp.pi + 2 * jnp.pi * jax.nn.sigmoid(z[t])
+        turned = -jnp.pi + 2 * jnp.pi * jax.nn.sigmoid(new[t])
         # log pi(z') - log pi(z) + log|det dz'/dz| reduces to the yaw prior's ratio
         log_ratio = self.prior.config.theta_concentration * (jnp.cos(turned) - jnp.cos(theta))
         accept = jnp.log(jax.random.uniform(k_accept)) < log_ratio

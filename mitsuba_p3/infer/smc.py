@@ -73,13 +73,13 @@ from .evidence import decision, island_gap, island_range, mark_lost_runs, object
 from .budget import GPU_PARTICLES, check_sampler_memory, default_particles  # noqa: F401 (re-exported)
 from .coarse import coarse_view
 from .hypotheses import Hypotheses, footprint_start, hypotheses_of, initial_particles
+from .smc_moves import SYMMETRY_MOVES, mover
 from .smc_moves import kernels as make_kernels
-from .smc_moves import mover
 
 
 # Settings whose default changed after they were added, at the value they had before: a record (an
 # evaluation's run.json, an SBC cache's tag) that does not name them was made without a wide start
-DEFAULTS_BEFORE = {"wide": 1, "wide_steps": 0, "coarse": 1}
+DEFAULTS_BEFORE = {"wide": 1, "wide_steps": 0, "coarse": 1, "symmetry": "free"}
 
 
 @dataclass(frozen=True)
@@ -106,6 +106,11 @@ class SMCConfig:
     footprint: bool = True         # half of the first step's draws placed from the image's footprint
     kinds: bool = False            # material kinds as hypotheses of their own (else within each shape)
     ridge: int = 3                 # ridge moves (colour x s, weights / s; no render) after every walk
+    # the symmetry move (turns of 90 and 180 degrees): "rendered" at every material update (exact), or "free"
+    # after every walk without a render (the likelihood taken as unchanged, which a row of outline pixels
+    # breaks for about a tenth of the turns). Rendered, on SBC's first 40 simulations the truth fell outside
+    # all draws of shift_x / shift_y / height 33 / 23 / 30% (free: 40 / 43 / 38%); docs/notebook.md
+    symmetry: str = "rendered"
     islands: int = 2               # independent SMC runs per hypothesis and round, their evidence pooled
     rounds: int = 1                # rounds of runs; a round after the first runs only the contenders
     decided: float = 0.99          # no further round once the leader has this weight, even at its worst run's estimate
@@ -136,6 +141,8 @@ class SMCConfig:
         if self.wide_steps and self.wide > 1 and (self.persistent or self.waste_free > 1):
             raise ConfigError("smc wide start excludes persistent sampling and waste-free SMC (with them, set "
                               "smc.wide_steps=0)")
+        if self.symmetry not in SYMMETRY_MOVES:
+            raise ConfigError(f"smc symmetry must be one of {', '.join(SYMMETRY_MOVES)}; got {self.symmetry!r}")
         if not 0.0 < self.target_ess < 1.0:
             raise ConfigError(f"smc target-ess must lie in (0, 1); got {self.target_ess}")
         if self.waste_free > 1 and (self.particles % self.waste_free or self.persistent):
@@ -199,7 +206,7 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
     import jax
     import jax.numpy as jnp
 
-    kernels = make_kernels(core, config.kinds, config.ridge)
+    kernels = make_kernels(core, config.kinds, config.ridge, config.symmetry)
     space = hypotheses_of(core.prior, config.kinds)
     rows = Hypotheses(tuple(space.names[i] for i in index), *(a[index] for a in space[1:]))
     index_j = jnp.asarray(index, jnp.int32)
@@ -225,7 +232,7 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
     # a coarse wide start (:mod:`mitsuba_p3.infer.coarse`): its steps score and move at 1 / coarse of the resolution
     coarse = coarse_view(core, observation, image, config.coarse) if width > 1 and config.coarse > 1 else None
     if coarse:
-        start_kernels, start_observation = make_kernels(coarse[0], config.kinds, config.ridge), coarse[1]
+        start_kernels, start_observation = make_kernels(coarse[0], config.kinds, config.ridge, config.symmetry), coarse[1]
         start_move = moves(start_kernels, start_observation)
     else:
         start_kernels, start_observation, start_move = kernels, observation, move

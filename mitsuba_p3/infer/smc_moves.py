@@ -2,9 +2,10 @@
 
 A sweep is a Gaussian random walk over position, yaw and size (the dimensions of
 :data:`WALK_MASK`; each row's covariance 2.38^2 / d times its own particles', times the
-row's adapted ``scale``), then the symmetry move and ``ridge`` moves along the colour/weight
-ridge (neither renders); every ``material_every``-th sweep and the last end with the material
-Metropolis-within-Gibbs update (one render of the material bases; the costliest move). With
+row's adapted ``scale``), then ``ridge`` moves along the colour/weight ridge (no render);
+every ``material_every``-th sweep and the last end with the symmetry move (the object turned
+by 90 or 180 degrees, rendered: one render) and the material Metropolis-within-Gibbs update
+(one render of the material bases; the costliest move). With
 ``gradient_steps`` (``final_gradient_steps`` at lambda = 1) preconditioned MALA sweeps over the
 pose follow: Langevin proposals along the particles' covariance, the likelihood's gradient a
 forward difference (one render per pose dimension; a render's own gradient has no silhouette
@@ -37,6 +38,9 @@ WALK_MASK = np.array([0.0 if any(i in range(DIMENSION)[SLICES[name]]
 # what the gradient move moves: position, yaw and log half-extents
 POSE_MASK = np.array([1.0 if any(i in range(DIMENSION)[SLICES[name]] for name in ("shift", "theta", "scale"))
                       else 0.0 for i in range(DIMENSION)], np.float32)
+# where the symmetry move's turns are made: rendered at every material update (exact), or free after
+# every walk (no render; the likelihood taken as unchanged)
+SYMMETRY_MOVES = ("rendered", "free")
 # the gradient move's finite-difference step along each direction, in units of the particles' spread
 # along it: a secant over a tenth of the posterior's width, so silhouette edges, which a render's
 # gradient without a boundary term misses, still pull
@@ -56,11 +60,14 @@ class Kernels(NamedTuple):
 
 
 @functools.lru_cache(maxsize=4)
-def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int = 0) -> Kernels:
+def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int = 0, symmetry: str = "rendered") -> Kernels:
     """Jitted kernels for one :class:`PosteriorCore`: scores of all particles, the two moves of all
     particles at per-row temperatures, and (for the bridge) the colour and whole log likelihood of
     all particles from one render each. Every row is one run of one hypothesis; ``index`` (R,) names
-    each row's hypothesis (a row of :func:`hypotheses_of` without islands)."""
+    each row's hypothesis (a row of :func:`hypotheses_of` without islands). ``symmetry``: "rendered"
+    turns the object (:meth:`~mitsuba_p3.infer.model.PosteriorCore.symmetry_turn`) at the start of
+    every material update and renders the turn (exact); "free" turns it after every walk without a
+    render (the likelihood taken as unchanged, true only up to the outline's rasterisation)."""
     import jax
     import jax.numpy as jnp
     from blackjax.mcmc.random_walk import RWState
@@ -97,9 +104,10 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int = 0) -> Kernels:
         accept = jnp.log(jax.random.uniform(k_accept, loglik.shape)) < log_ratio
         z = jnp.where(accept[..., None], proposed, z)
         loglik, logprior = jnp.where(accept, new_loglik, loglik), jnp.where(accept, new_logprior, logprior)
-        # symmetry: no render; the tempered density changes only through the yaw prior
         flat = RWState(z.reshape(-1, z.shape[-1]), logprior.reshape(-1))
-        turned = jax.vmap(core.symmetry_move)(jax.random.split(k_symmetry, flat.position.shape[0]), flat)
+        if symmetry == "free":   # no render; the tempered density changes only through the yaw prior
+            flat = jax.vmap(core.symmetry_move)(jax.random.split(k_symmetry, flat.position.shape[0]), flat)
+        turned = flat
         if ridge:
             # along the colour/weight ridge: no render; the density changes by the hypothesis prior's difference
             h = jnp.repeat(index, z.shape[1])
@@ -109,11 +117,32 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int = 0) -> Kernels:
         return (turned.position.reshape(z.shape), loglik, turned.logdensity.reshape(logprior.shape)), \
             accept.mean(axis=1)
 
+    def turn(key, state, index, tempering, observation):
+        """The symmetry move, rendered: every particle turned by 90, 180 or -90 degrees and accepted
+        with the tempered density's ratio and the turn's Jacobian (one render per particle).
+        Returns (state, each row's acceptance (R,))."""
+        k_turn, k_accept = jax.random.split(key)
+        z, loglik, logprior = state
+        flat = z.reshape(-1, z.shape[-1])
+        proposed, log_jacobian = jax.vmap(core.symmetry_turn)(jax.random.split(k_turn, flat.shape[0]), flat)
+        proposed, log_jacobian = proposed.reshape(z.shape), log_jacobian.reshape(loglik.shape)
+        new_loglik, new_logprior = loglik_all(proposed, observation), logprior_all(proposed, index)
+        log_ratio = (new_logprior - logprior + tempering[:, None] * (new_loglik - loglik) + log_jacobian)
+        accept = jnp.log(jax.random.uniform(k_accept, loglik.shape)) < jnp.nan_to_num(log_ratio, nan=-jnp.inf)
+        z = jnp.where(accept[..., None], proposed, z)
+        loglik, logprior = jnp.where(accept, new_loglik, loglik), jnp.where(accept, new_logprior, logprior)
+        return (z, loglik, logprior), accept.mean(axis=1)
+
     @jax.jit
     def material(key, state, index, tempering, observation):
         """The material Metropolis-within-Gibbs update at each row's temperature (one render of
-        the material bases per particle; the result is scored from them); returns (state, each
-        row's acceptance (R,))."""
+        the material bases per particle; the result is scored from them), after the rendered
+        symmetry move where ``symmetry`` is "rendered"; returns (state, each row's material
+        acceptance (R,), its turn acceptance (R,), NaN without the rendered turn)."""
+        turned = jnp.full(state[1].shape[:1], jnp.nan)
+        if symmetry == "rendered":
+            key, k_turn = jax.random.split(key)
+            state, turned = turn(k_turn, state, index, tempering, observation)
         z, loglik, logprior = state
         h = jnp.repeat(index, z.shape[1])
         lam = jnp.repeat(tempering, z.shape[1])
@@ -129,7 +158,7 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int = 0) -> Kernels:
                                                     loglik.reshape(-1), h, lam)
         moved = moved.reshape(z.shape)
         return (moved, new_loglik.reshape(loglik.shape), logprior_all(moved, index)), \
-            accepted.reshape(loglik.shape).mean(axis=1)
+            accepted.reshape(loglik.shape).mean(axis=1), turned
 
     prior_gradient = jax.vmap(jax.vmap(jax.grad(log_prior)))
 
@@ -181,9 +210,18 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int = 0) -> Kernels:
     return Kernels(score, walk, material, parts, jax.jit(logprior_all), gradient)
 
 
-def kernels(core, kinds: bool, ridge: int) -> Kernels:
-    """The jitted moves of one core (cached: a core serves every image of a data set)."""
-    return _kernels(core, tuple(WALK_MASK.tolist()), kinds, ridge)
+def kernels(core, kinds: bool, ridge: int, symmetry: str | None = None) -> Kernels:
+    """The jitted moves of one core (cached: a core serves every image of a data set); ``symmetry``
+    defaults to the SMC's (:class:`~mitsuba_p3.infer.smc.SMCConfig`)."""
+    if symmetry is None:
+        from .smc import SMCConfig
+
+        symmetry = SMCConfig.symmetry
+    if symmetry not in SYMMETRY_MOVES:
+        from ..errors import ConfigError
+
+        raise ConfigError(f"symmetry must be one of {SYMMETRY_MOVES}, not {symmetry!r}")
+    return _kernels(core, tuple(WALK_MASK.tolist()), kinds, ridge, symmetry)
 
 
 def covariance_factors(position: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -233,7 +271,7 @@ def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int
         lam = jnp.asarray(state.tempering if tempering is None else tempering, jnp.float32)
         tril = jnp.asarray(walk_factors(np.asarray(state.position), state.scale))
         particles = tuple(jnp.asarray(a) for a in state[:3])
-        walks, materials, kept = [], [], [particles] if path else []   # waste-free keeps every sweep's states
+        walks, materials, turns, kept = [], [], [], [particles] if path else []   # waste-free keeps every sweep's states
         final = bool(np.all(state.tempering >= 1.0))      # every row at lambda = 1: the last move
         total = sweeps + (final_sweeps if final else 0)
         for i in range(total):
@@ -241,8 +279,9 @@ def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int
             particles, accepted = kernels.walk(k_walk, particles, index, lam, tril, observation)
             walks.append(accepted)
             if (i + 1) % material_every == 0 or i == total - 1:
-                particles, accepted = kernels.material(k_material, particles, index, lam, observation)
+                particles, accepted, turned = kernels.material(k_material, particles, index, lam, observation)
                 materials.append(accepted)
+                turns.append(turned)
             if path:
                 kept.append(particles)
         gradients = []
@@ -265,6 +304,8 @@ def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int
         moved = state._replace(position=np.array(particles[0]), loglikelihood=np.array(particles[1]),
                                logprior=np.array(particles[2]))
         rates = {"walk": np.mean(np.asarray(walks), axis=0), "material": np.mean(np.asarray(materials), axis=0)}
+        if not np.isnan(np.asarray(turns)).all():
+            rates["turn"] = np.mean(np.asarray(turns), axis=0)
         if gradients:
             rates["gradient"] = np.mean(np.asarray(gradients), axis=0)
         return moved, rates
