@@ -94,7 +94,9 @@ def test_every_sampler_field_is_reachable_with_set_and_config(tmp_path):
     from mitsuba_p3.errors import ConfigError
     from mitsuba_p3.infer.mcmc import SamplerConfig
     from mitsuba_p3.infer.smc import SMCConfig
+    from mitsuba_p3.infer.smc_moves import SYMMETRY_MOVES
 
+    choices = {"symmetry": SYMMETRY_MOVES}          # a text field's values
     other = {bool: lambda v: str(not v).lower(), int: lambda v: str(v + 2), float: lambda v: str(v * 0.9 if v else 0.1)}
     # (from an SMC without the wide start, which persistent sampling and waste-free SMC exclude)
     for config, prefix in ((SMCConfig(wide_steps=0), "smc"), (SamplerConfig(), "mh")):
@@ -102,11 +104,15 @@ def test_every_sampler_field_is_reachable_with_set_and_config(tmp_path):
             value = getattr(config, field.name)
             if isinstance(value, tuple):
                 text, expected = "40x48", (40, 48)
+            elif isinstance(value, str):
+                text = expected = next(choice for choice in choices[field.name] if choice != value)
             else:
                 text = other[type(value)](value)
                 expected = type(value)(text == "true") if isinstance(value, bool) else type(value)(text)
             changed = apply_settings(config, [f"{prefix}.{field.name}={text}"])
             assert getattr(changed, field.name) == expected, field.name
+    with pytest.raises(ConfigError, match="symmetry"):
+        apply_settings(SMCConfig(), ["smc.symmetry=sideways"])
     (tmp_path / "settings.json").write_text('{"smc": {"islands": 3, "window": null, "persistent": true}}')
     from_file = apply_settings(SMCConfig(wide_steps=0), ["smc.islands=4"], tmp_path / "settings.json")
     assert (from_file.islands, from_file.window, from_file.persistent) == (4, None, True)   # --set after the file

@@ -332,9 +332,8 @@ def test_rendered_symmetry_move_is_exact(fitted, observed):
     # at lambda = 0 the turns move prior draws and keep them prior draws
     z = jnp.asarray(draws.reshape(2, 200, -1))
     state = (z, *k.score(z, index, model.observation))
-    turn = jax.jit(lambda key, s: k.material(key, s, index, jnp.zeros(2), model.observation))
     for i in range(10):
-        state, _, rate = turn(jax.random.PRNGKey(10 + i), state)
+        state, rate = k.turn(jax.random.PRNGKey(10 + i), state, index, jnp.zeros(2), model.observation)
     assert float(np.mean(rate)) > 0.3
     moved = np.asarray(state[0]).reshape(len(draws), -1)
     assert ks_2samp(np.asarray(yaw(moved)), np.asarray(core.prior.constrain(core.prior.sample(

@@ -57,6 +57,7 @@ class Kernels(NamedTuple):
     parts: Callable
     prior: Callable
     gradient: Callable
+    turn: Callable
 
 
 @functools.lru_cache(maxsize=4)
@@ -207,7 +208,7 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int = 0, symmetry: str 
         loglik, logprior = jnp.where(accept, new_loglik, loglik), jnp.where(accept, new_logprior, logprior)
         return (z, loglik, logprior), accept.mean(axis=1)
 
-    return Kernels(score, walk, material, parts, jax.jit(logprior_all), gradient)
+    return Kernels(score, walk, material, parts, jax.jit(logprior_all), gradient, jax.jit(turn))
 
 
 def kernels(core, kinds: bool, ridge: int, symmetry: str | None = None) -> Kernels:
