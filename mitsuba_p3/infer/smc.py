@@ -232,7 +232,8 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
     # a coarse wide start (:mod:`mitsuba_p3.infer.coarse`): its steps score and move at 1 / coarse of the resolution
     coarse = coarse_view(core, observation, image, config.coarse) if width > 1 and config.coarse > 1 else None
     if coarse:
-        start_kernels, start_observation = make_kernels(coarse[0], config.kinds, config.ridge, config.symmetry), coarse[1]
+        start_kernels = make_kernels(coarse[0], config.kinds, config.ridge, config.symmetry)
+        start_observation = coarse[1]
         start_move = moves(start_kernels, start_observation)
     else:
         start_kernels, start_observation, start_move = kernels, observation, move

@@ -105,10 +105,9 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int = 0, symmetry: str 
         accept = jnp.log(jax.random.uniform(k_accept, loglik.shape)) < log_ratio
         z = jnp.where(accept[..., None], proposed, z)
         loglik, logprior = jnp.where(accept, new_loglik, loglik), jnp.where(accept, new_logprior, logprior)
-        flat = RWState(z.reshape(-1, z.shape[-1]), logprior.reshape(-1))
+        turned = RWState(z.reshape(-1, z.shape[-1]), logprior.reshape(-1))
         if symmetry == "free":   # no render; the tempered density changes only through the yaw prior
-            flat = jax.vmap(core.symmetry_move)(jax.random.split(k_symmetry, flat.position.shape[0]), flat)
-        turned = flat
+            turned = jax.vmap(core.symmetry_move)(jax.random.split(k_symmetry, turned.position.shape[0]), turned)
         if ridge:
             # along the colour/weight ridge: no render; the density changes by the hypothesis prior's difference
             h = jnp.repeat(index, z.shape[1])
@@ -272,7 +271,8 @@ def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int
         lam = jnp.asarray(state.tempering if tempering is None else tempering, jnp.float32)
         tril = jnp.asarray(walk_factors(np.asarray(state.position), state.scale))
         particles = tuple(jnp.asarray(a) for a in state[:3])
-        walks, materials, turns, kept = [], [], [], [particles] if path else []   # waste-free keeps every sweep's states
+        walks, materials, turns = [], [], []
+        kept = [particles] if path else []               # waste-free keeps every sweep's states
         final = bool(np.all(state.tempering >= 1.0))      # every row at lambda = 1: the last move
         total = sweeps + (final_sweeps if final else 0)
         for i in range(total):
