@@ -113,7 +113,7 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int = 0, symmetry: str 
             h = jnp.repeat(index, z.shape[1])
             for k_ridge in jax.random.split(jax.random.fold_in(k_symmetry, 1), ridge):
                 turned = jax.vmap(lambda key, state, row: core.ridge_move(key, state, lambda p: log_prior(p, row)))(
-                    jax.random.split(k_ridge, flat.position.shape[0]), turned, h)
+                    jax.random.split(k_ridge, turned.position.shape[0]), turned, h)
         return (turned.position.reshape(z.shape), loglik, turned.logdensity.reshape(logprior.shape)), \
             accept.mean(axis=1)
 
