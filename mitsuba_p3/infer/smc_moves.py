@@ -61,7 +61,7 @@ class Kernels(NamedTuple):
 
 
 @functools.lru_cache(maxsize=4)
-def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int = 0, symmetry: str = "rendered") -> Kernels:
+def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str) -> Kernels:
     """Jitted kernels for one :class:`PosteriorCore`: scores of all particles, the two moves of all
     particles at per-row temperatures, and (for the bridge) the colour and whole log likelihood of
     all particles from one render each. Every row is one run of one hypothesis; ``index`` (R,) names
