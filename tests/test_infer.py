@@ -340,6 +340,70 @@ def test_rendered_symmetry_move_is_exact(fitted, observed):
         np.random.default_rng(3), 2000))["theta"])).pvalue > 0.01
 
 
+def test_walk_moves_in_a_symmetry_chart(fitted, observed):
+    """The walk's symmetry chart (infer/symmetry.py): a quarter turn and its inverse give the point
+    back with opposite log-Jacobians, the Jacobian is the yaw coordinate's derivative, folding puts
+    every particle within 45 degrees of its row's centre (the same centre for a cloud and its turned
+    copies), and the walk in the chart, moving prior draws at lambda = 0, keeps them prior draws
+    (check runs without the turns' Jacobian: KS p 2e-4; without the Hastings term of a step into
+    another copy: 0.003)."""
+    import jax
+    import jax.numpy as jnp
+    from scipy.stats import ks_2samp
+
+    from mitsuba_p3.infer.smc_moves import kernels, walk_factors
+    from mitsuba_p3.infer.symmetry import chart_centres, folded, quarter_turn, yaw
+    from mitsuba_p3.space import SLICES
+
+    model = PosteriorModel(fitted, observed, LikelihoodConfig("p3", sigma=0.05))
+    core, t = model.core, SLICES["theta"].start
+    draws = np.asarray(core.prior.sample(np.random.default_rng(4), 400), np.float64)
+    turns = np.random.default_rng(5).integers(-2, 3, len(draws))
+    turned, log_jacobian = quarter_turn(draws, turns)
+    back, log_back = quarter_turn(turned, -turns)
+    np.testing.assert_allclose(back, draws, atol=1e-5)
+    np.testing.assert_allclose(log_jacobian + log_back, 0.0, atol=1e-5)
+    step = np.zeros(draws.shape[1])
+    step[t] = 1e-4
+    numeric = (quarter_turn(draws + step, turns)[0][:, t] - quarter_turn(draws - step, turns)[0][:, t]) / 2e-4
+    np.testing.assert_allclose(np.log(np.abs(numeric)), log_jacobian, atol=1e-3)
+    swapped = turns % 2 == 1
+    scale = SLICES["scale"].start
+    np.testing.assert_array_equal(turned[swapped, scale], draws[swapped, scale + 1])
+    cloud = draws[None, :50].copy()
+    cloud[..., t] = np.log(0.55 / 0.45) + 0.01 * np.random.default_rng(6).normal(size=50)
+    copies = quarter_turn(cloud, turns[None, :50])[0]
+    np.testing.assert_allclose(chart_centres(copies), chart_centres(cloud), atol=1e-6)
+    centres = chart_centres(draws[None])
+    offset = np.angle(np.exp(1j * (yaw(folded(draws[None], centres)) - centres[:, None])))
+    assert np.all(np.abs(offset) <= np.pi / 4 + 1e-6)
+
+    class PriorOnly:
+        """The kernels' view of a posterior whose likelihood is flat: at lambda = 0 only the prior
+        counts, and 20,000 particles walk without a render."""
+        prior = core.prior
+
+        def log_likelihood(self, z, observation):
+            return 0.0 * z[0]
+
+    k = kernels(PriorOnly(), False, 0, "rendered")
+    start = core.prior.sample(np.random.default_rng(7), 20_000).astype(np.float32).reshape(2, 10_000, -1)
+    index = jnp.zeros(2, jnp.int32)
+    state = (jnp.asarray(start), *k.score(jnp.asarray(start), index, {}))
+    centres = chart_centres(start)
+    tril = jnp.asarray(walk_factors(folded(start, centres), np.full(2, 0.5)))
+    rates = []
+    for i in range(40):
+        state, rate = k.walk(jax.random.PRNGKey(20 + i), state, index, jnp.zeros(2), tril,
+                             jnp.asarray(centres, jnp.float32), {})
+        rates.append(float(np.mean(rate)))
+    assert 0.1 < np.mean(rates) < 0.9
+    moved = np.asarray(state[0]).reshape(-1, start.shape[-1])
+    reference = core.prior.sample(np.random.default_rng(8), 20_000)
+    for column in (t, scale, scale + 1):
+        assert ks_2samp(moved[:, column], reference[:, column]).pvalue > 0.01, column
+
+
 def test_sampler_weighs_modes_correctly(fitted):
     """On a known target (three Gaussians, one per shape class, with weights 0.5, 0.3, 0.2) the
     mode jumps and walks give each class its probability: a wrong Hastings term would not.
@@ -969,8 +1033,9 @@ def test_an_sbc_cache_made_before_the_wide_start_became_the_default_is_not_resum
     from mitsuba_p3.evaluate.sbc import settings_tag
     from mitsuba_p3.infer.smc import SMCConfig
 
-    assert settings_tag(SMCConfig(wide=1, wide_steps=0, coarse=1, symmetry="free", seed=5)) == "{}"
-    assert json.loads(settings_tag(SMCConfig())) == {"wide": 4, "wide_steps": 6, "coarse": 2, "symmetry": "rendered"}
+    assert settings_tag(SMCConfig(wide=1, wide_steps=0, coarse=1, symmetry="free", chart=False, seed=5)) == "{}"
+    assert json.loads(settings_tag(SMCConfig())) == {"wide": 4, "wide_steps": 6, "coarse": 2, "symmetry": "rendered",
+                                                  "chart": True}
     assert json.loads(settings_tag(SMCConfig(islands=3)))["islands"] == 3
 
 

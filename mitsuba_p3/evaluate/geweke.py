@@ -83,6 +83,7 @@ def successive_conditional(core, hypothesis: int, moves: str, chains: int, steps
     tril = jnp.asarray(walk_scale * covariance_factors(start[None], WALK_MASK), jnp.float32)   # (1, d, d)
     index = jnp.asarray([hypothesis], jnp.int32)
     lam = jnp.full(1, tempering, jnp.float32)
+    centre = jnp.zeros(1, jnp.float32)        # the walk's symmetry chart: the copy within 45 degrees of yaw 0
     sigma = core.config.sigma / np.sqrt(core.config.power)
 
     def one(key, z, image):
@@ -93,7 +94,7 @@ def successive_conditional(core, hypothesis: int, moves: str, chains: int, steps
         rates = []
         k_walk, k_material = jax.random.split(key)
         if moves in ("walk", "both"):
-            particles, accepted = k.walk(k_walk, particles, index, lam, tril, observation)
+            particles, accepted = k.walk(k_walk, particles, index, lam, tril, centre, observation)
             rates.append(accepted[0])
         if moves in ("material", "both"):
             particles, accepted, _ = k.material(k_material, particles, index, lam, observation)

@@ -262,21 +262,9 @@ class PosteriorCore:
         import jax
         import jax.numpy as jnp
 
-        t = SLICES["theta"].start
-        sx, sy = SLICES["scale"].start, SLICES["scale"].start + 1
-        turns = jnp.array([np.pi / 2, np.pi, -np.pi / 2])
-        choice = jax.random.randint(key, (), 0, 3)
-        z = position
-        theta = -jnp.pi + 2 * jnp.pi * jax.nn.sigmoid(z[t])
-        turned = jnp.mod(theta + turns[choice] + jnp.pi, 2 * jnp.pi) - jnp.pi
-        u = jnp.clip((turned + jnp.pi) / (2 * jnp.pi), 1e-7, 1 - 1e-7)
-        new = z.at[t].set(jnp.log(u) - jnp.log1p(-u))
-        swapped = new.at[sx].set(z[sy]).at[sy].set(z[sx])
-        new = jnp.where(choice == 1, new, swapped)
-        # z = logit(u), u' = u + turn / 2 pi (mod 1): dz'/dz = u (1 - u) / (u' (1 - u'))
-        u0 = jax.nn.sigmoid(z[t])
-        log_jacobian = jnp.log(u0) + jnp.log1p(-u0) - jnp.log(u) - jnp.log1p(-u)
-        return new, log_jacobian
+        from .symmetry import quarter_turn
+
+        return quarter_turn(position, jnp.array([1, 2, -1])[jax.random.randint(key, (), 0, 3)], jnp)
 
     def symmetry_move(self, key, state):
         """An MH move over the primitives' symmetries that does not render.

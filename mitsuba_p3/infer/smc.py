@@ -79,7 +79,7 @@ from .smc_moves import kernels as make_kernels
 
 # Settings whose default changed after they were added, at the value they had before: a record (an
 # evaluation's run.json, an SBC cache's tag) that does not name them was made without a wide start
-DEFAULTS_BEFORE = {"wide": 1, "wide_steps": 0, "coarse": 1, "symmetry": "free"}
+DEFAULTS_BEFORE = {"wide": 1, "wide_steps": 0, "coarse": 1, "symmetry": "free", "chart": False}
 
 
 @dataclass(frozen=True)
@@ -111,6 +111,10 @@ class SMCConfig:
     # breaks for about a tenth of the turns). Rendered, on SBC's first 40 simulations the truth fell outside
     # all draws of shift_x / shift_y / height 33 / 23 / 30% (free: 40 / 43 / 38%); docs/notebook.md
     symmetry: str = "rendered"
+    # the walk in each particle's symmetry chart (:mod:`mitsuba_p3.infer.symmetry`): its covariance one
+    # symmetric copy's width, not the distance between the copies the symmetry move spreads particles over
+    # (False: the walk in z with the covariance of all copies). docs/notebook.md, "The walk in a chart"
+    chart: bool = True
     islands: int = 2               # independent SMC runs per hypothesis and round, their evidence pooled
     rounds: int = 1                # rounds of runs; a round after the first runs only the contenders
     decided: float = 0.99          # no further round once the leader has this weight, even at its worst run's estimate
@@ -206,7 +210,7 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
     import jax
     import jax.numpy as jnp
 
-    kernels = make_kernels(core, config.kinds, config.ridge, config.symmetry)
+    kernels = make_kernels(core, config.kinds, config.ridge, config.symmetry, config.chart)
     space = hypotheses_of(core.prior, config.kinds)
     rows = Hypotheses(tuple(space.names[i] for i in index), *(a[index] for a in space[1:]))
     index_j = jnp.asarray(index, jnp.int32)
@@ -232,7 +236,7 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
     # a coarse wide start (:mod:`mitsuba_p3.infer.coarse`): its steps score and move at 1 / coarse of the resolution
     coarse = coarse_view(core, observation, image, config.coarse) if width > 1 and config.coarse > 1 else None
     if coarse:
-        start_kernels = make_kernels(coarse[0], config.kinds, config.ridge, config.symmetry)
+        start_kernels = make_kernels(coarse[0], config.kinds, config.ridge, config.symmetry, config.chart)
         start_observation = coarse[1]
         start_move = moves(start_kernels, start_observation)
     else:

@@ -2,7 +2,9 @@
 
 A sweep is a Gaussian random walk over position, yaw and size (the dimensions of
 :data:`WALK_MASK`; each row's covariance 2.38^2 / d times its own particles', times the
-row's adapted ``scale``), then ``ridge`` moves along the colour/weight ridge (no render);
+row's adapted ``scale``), made in the row's symmetry chart (:mod:`mitsuba_p3.infer.symmetry`:
+the particles' four equivalent copies folded onto one, so that the covariance is one copy's
+width, not the distance between copies), then ``ridge`` moves along the colour/weight ridge (no render);
 every ``material_every``-th sweep and the last end with the symmetry move (the object turned
 by 90 or 180 degrees, rendered: one render) and the material Metropolis-within-Gibbs update
 (one render of the material bases; the costliest move). With
@@ -27,6 +29,7 @@ import numpy as np
 
 from ..space import DIMENSION, SLICES
 from .hypotheses import hypotheses_of, hypothesis_log_prior
+from .symmetry import chart_centres, folded, quarter_turn, quarters
 from .tempering import TARGET_GRADIENT_ACCEPTANCE, TemperedState, adaptation
 
 # what the random walk moves: not the class (fixed by the hypothesis) nor the material (the material update's)
@@ -58,17 +61,19 @@ class Kernels(NamedTuple):
     prior: Callable
     gradient: Callable
     turn: Callable
+    chart: bool          # the walk moves in each particle's symmetry chart (else plainly in z)
 
 
 @functools.lru_cache(maxsize=4)
-def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str) -> Kernels:
+def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str, chart: bool) -> Kernels:
     """Jitted kernels for one :class:`PosteriorCore`: scores of all particles, the two moves of all
     particles at per-row temperatures, and (for the bridge) the colour and whole log likelihood of
     all particles from one render each. Every row is one run of one hypothesis; ``index`` (R,) names
     each row's hypothesis (a row of :func:`hypotheses_of` without islands). ``symmetry``: "rendered"
     turns the object (:meth:`~mitsuba_p3.infer.model.PosteriorCore.symmetry_turn`) at the start of
     every material update and renders the turn (exact); "free" turns it after every walk without a
-    render (the likelihood taken as unchanged, true only up to the outline's rasterisation)."""
+    render (the likelihood taken as unchanged, true only up to the outline's rasterisation). ``chart``:
+    the walk moves in each particle's symmetry chart (:mod:`mitsuba_p3.infer.symmetry`), else in z."""
     import jax
     import jax.numpy as jnp
     from blackjax.mcmc.random_walk import RWState
@@ -94,14 +99,29 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str) -> 
         return colour.reshape(z.shape[:2]), whole.reshape(z.shape[:2]), logprior_all(z, index)
 
     @jax.jit
-    def walk(key, state, index, tempering, tril, observation):
-        """The random walk, then the symmetry move; returns (state, walk acceptance (R,))."""
+    def walk(key, state, index, tempering, tril, centres, observation):
+        """The random walk in each particle's symmetry chart (:mod:`mitsuba_p3.infer.symmetry`: turned
+        into the copy within 45 degrees of its row's ``centres``, walked, turned back), then the free
+        symmetry move (where chosen) and the ridge moves; returns (state, walk acceptance (R,))."""
         k_walk, k_accept, k_symmetry = jax.random.split(key, 3)
         z, loglik, logprior = state
+        copy = quarters(z, centres, jnp) if chart else jnp.zeros(z.shape[:2], jnp.int32)
+        folded_z, log_unturn = quarter_turn(z, -copy, jnp)                  # log |du/dz| at z
         noise = jax.random.normal(k_walk, z.shape) * mask
-        proposed = z + jnp.einsum("hij,hnj->hni", tril, noise)
+        proposed, log_turn = quarter_turn(folded_z + jnp.einsum("hij,hnj->hni", tril, noise), copy, jnp)
+        # the proposal's density each way (the Hastings term): forward N(noise) |du'/dz'|, reverse the walk
+        # from z' in z' 's own chart; where a step crosses into another copy the two charts differ
+        back = quarters(proposed, centres, jnp) if chart else copy
+        from_new, _ = quarter_turn(proposed, -back, jnp)
+        to_old, log_unturn_back = quarter_turn(z, -back, jnp)
+        solve = jax.vmap(lambda lower, b: jax.scipy.linalg.solve_triangular(lower, b.T, lower=True).T)
+        reverse = solve(tril + jnp.diag(1.0 - mask), to_old - from_new)
+        crossed = (back - copy) % 4 != 0
+        log_hastings = jnp.where(crossed, 0.5 * jnp.sum(noise ** 2 - reverse ** 2, axis=-1) + log_unturn_back,
+                                 log_unturn) + log_turn
         new_loglik, new_logprior = loglik_all(proposed, observation), logprior_all(proposed, index)
-        log_ratio = new_logprior + tempering[:, None] * new_loglik - logprior - tempering[:, None] * loglik
+        log_ratio = (new_logprior + tempering[:, None] * new_loglik - logprior - tempering[:, None] * loglik
+                     + log_hastings)
         accept = jnp.log(jax.random.uniform(k_accept, loglik.shape)) < log_ratio
         z = jnp.where(accept[..., None], proposed, z)
         loglik, logprior = jnp.where(accept, new_loglik, loglik), jnp.where(accept, new_logprior, logprior)
@@ -207,21 +227,22 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str) -> 
         loglik, logprior = jnp.where(accept, new_loglik, loglik), jnp.where(accept, new_logprior, logprior)
         return (z, loglik, logprior), accept.mean(axis=1)
 
-    return Kernels(score, walk, material, parts, jax.jit(logprior_all), gradient, jax.jit(turn))
+    return Kernels(score, walk, material, parts, jax.jit(logprior_all), gradient, jax.jit(turn), chart)
 
 
-def kernels(core, kinds: bool, ridge: int, symmetry: str | None = None) -> Kernels:
-    """The jitted moves of one core (cached: a core serves every image of a data set); ``symmetry``
-    defaults to the SMC's (:class:`~mitsuba_p3.infer.smc.SMCConfig`)."""
-    if symmetry is None:
-        from .smc import SMCConfig
+def kernels(core, kinds: bool, ridge: int, symmetry: str | None = None, chart: bool | None = None) -> Kernels:
+    """The jitted moves of one core (cached: a core serves every image of a data set); ``symmetry`` and
+    ``chart`` (the walk in each particle's symmetry chart) default to the SMC's
+    (:class:`~mitsuba_p3.infer.smc.SMCConfig`)."""
+    from .smc import SMCConfig
 
-        symmetry = SMCConfig.symmetry
+    symmetry = SMCConfig.symmetry if symmetry is None else symmetry
+    chart = SMCConfig.chart if chart is None else bool(chart)
     if symmetry not in SYMMETRY_MOVES:
         from ..errors import ConfigError
 
         raise ConfigError(f"symmetry must be one of {SYMMETRY_MOVES}, not {symmetry!r}")
-    return _kernels(core, tuple(WALK_MASK.tolist()), kinds, ridge, symmetry)
+    return _kernels(core, tuple(WALK_MASK.tolist()), kinds, ridge, symmetry, chart)
 
 
 def covariance_factors(position: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -269,7 +290,11 @@ def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int
 
     def move(key, state: TemperedState):
         lam = jnp.asarray(state.tempering if tempering is None else tempering, jnp.float32)
-        tril = jnp.asarray(walk_factors(np.asarray(state.position), state.scale))
+        # the walk's chart and covariance: each row's particles folded onto one symmetric copy (symmetry.py)
+        position = np.asarray(state.position)
+        centres = chart_centres(position)
+        tril = jnp.asarray(walk_factors(folded(position, centres) if kernels.chart else position, state.scale))
+        centres = jnp.asarray(centres, jnp.float32)
         particles = tuple(jnp.asarray(a) for a in state[:3])
         walks, materials, turns = [], [], []
         kept = [particles] if path else []               # waste-free keeps every sweep's states
@@ -277,7 +302,7 @@ def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int
         total = sweeps + (final_sweeps if final else 0)
         for i in range(total):
             key, k_walk, k_material = jax.random.split(key, 3)
-            particles, accepted = kernels.walk(k_walk, particles, index, lam, tril, observation)
+            particles, accepted = kernels.walk(k_walk, particles, index, lam, tril, centres, observation)
             walks.append(accepted)
             if (i + 1) % material_every == 0 or i == total - 1:
                 particles, accepted, turned = kernels.material(k_material, particles, index, lam, observation)
