@@ -20,10 +20,10 @@ quarter-turn circular mean yaw mu (:func:`chart_centres`). A particle in copy q 
 (:func:`quarter_turn`), walked there with the covariance of the folded particles
 (:func:`folded`), and turned forward by q again. The move is exact: in the chart's coordinates
 u = T_q^-1(z) the walk is symmetric, so it is accepted with the target's ratio times the turn's
-Jacobian |dz/du| at both ends, and a proposal that leaves the copy (its yaw more than 45 degrees
-from mu in the chart) is rejected, which keeps q a function of the state that both directions of
-the move agree on. The chart's centre is the population's, fixed while the move runs, as the
-covariance is.
+Jacobian |dz/du| at both ends; a step that lands in another copy q' (its yaw more than 45 degrees
+from mu in the chart) is accepted with the full Hastings ratio, the reverse step's density taken in
+q' 's chart (:func:`~mitsuba_p3.infer.smc_moves.kernels`' walk). The chart's centre is the
+population's, fixed while the move runs, as the covariance is.
 
 :func:`quarter_turn` takes the array module ``xp`` (``numpy`` or ``jax.numpy``), so the host's
 folding for the covariance and the jitted walk share one formula.
