@@ -229,8 +229,21 @@ def test_material_gibbs_moves_explain_the_image(fitted, observed):
     # and so is the log likelihood the tempered samplers take from the same bases
     scored = jax.jit(lambda key, s: model.core.scored_material_move(key, s, model.observation, 0.5))
     tempered = RWState(state.position, model.prior.log_prob(state.position) + 0.5 * model.log_likelihood(state.position))
-    moved, _, loglik = scored(jax.random.PRNGKey(99), tempered)
+    moved, _, loglik, _ = scored(jax.random.PRNGKey(99), tempered)
     assert float(loglik) == pytest.approx(float(model.log_likelihood(moved.position)), abs=1e-2)
+    # with the material kind's jump first: the bases the Gibbs update and the score use are those of the
+    # shininess kept, whether the jump was accepted or not (both happen within a few keys at lambda 0.02;
+    # at this sigma a shininess from the prior is too far from the truth's to be accepted at 0.5)
+    jumping = jax.jit(lambda key, s: model.core.scored_material_move(key, s, model.observation, 0.02, jump=True))
+    tempered = RWState(state.position, model.prior.log_prob(state.position) + 0.02 * model.log_likelihood(state.position))
+    outcomes = set()
+    for i in range(12):
+        moved, _, loglik, jumped = jumping(jax.random.PRNGKey(i), tempered)
+        outcomes.add(bool(jumped))
+        assert float(loglik) == pytest.approx(float(model.log_likelihood(moved.position)), abs=1e-2)
+        assert float(moved.logdensity) == pytest.approx(
+            float(model.prior.log_prob(moved.position) + 0.02 * model.log_likelihood(moved.position)), abs=2e-2)
+    assert outcomes == {True, False}
     colour = np.asarray(model.prior.constrain(state.position)["colour"])
     assert np.argmax(colour) == 0  # red, like the truth
 
@@ -326,7 +339,7 @@ def test_rendered_symmetry_move_is_exact(fitted, observed):
     near = jnp.asarray(truth + 0.02 * np.random.default_rng(2).normal(size=(2, 8, truth.size)), jnp.float32)
     state = (near, *k.score(near, index, model.observation))
     for i in range(3):
-        state, _, turn_rate = k.material(jax.random.PRNGKey(i), state, index, jnp.ones(2), model.observation)
+        state, _, turn_rate, _ = k.material(jax.random.PRNGKey(i), state, index, jnp.ones(2), model.observation)
     assert np.all(np.isfinite(np.asarray(turn_rate)))
     np.testing.assert_allclose(state[1], k.score(state[0], index, model.observation)[0], atol=0.05)
     # at lambda = 0 the turns move prior draws and keep them prior draws
@@ -604,7 +617,7 @@ def test_a_windowed_likelihood_scores_the_window_around_the_object(fitted, rende
     expected = score({"image": image[top:top + height, left:left + width]}, crop[None], core.config)[0]
     assert float(core.log_likelihood(z, window)) == pytest.approx(float(expected), rel=1e-5)
     state = RWState(z, core.logdensity(z, window))
-    _, _, loglik = core.scored_material_move(jax.random.PRNGKey(0), state, window)
+    _, _, loglik, _ = core.scored_material_move(jax.random.PRNGKey(0), state, window)
     assert np.isfinite(float(loglik))
     # an object too large for the window: the whole image is scored
     assert core.window_for(image, (12, 12)) is None
@@ -1169,7 +1182,7 @@ def test_the_smc_is_wider_where_the_jax_tracer_runs_on_a_gpu():
 
 @pytest.mark.slow
 def test_geweke_check_passes_the_smc_moves_and_catches_a_simulator_they_disagree_with(fitted):
-    """Getting it right (Geweke 2004): the SMC's walk and material moves, alternated with images
+    """Getting it right (Geweke 2004): the SMC's walk and material moves (and the material kind's jump), alternated with images
     simulated from their own state, keep prior draws prior draws (every KS p-value above 0.001).
     The same check with a simulator whose images are 30% brighter than the likelihood's renders
     (a mismatch between what is simulated and what is scored) drifts the colour and weights away."""
@@ -1181,6 +1194,11 @@ def test_geweke_check_passes_the_smc_moves_and_catches_a_simulator_they_disagree
                          walk_scale=0.01)
     assert min(np.min(p) for p in right.pvalues.values()) > 1e-3, right.summary()
     assert right.acceptance["walk"] > 0.1 and right.acceptance["material"] > 0.3
+    # the material kind's jump (shininess from its prior, weights from their conditional there) too, and
+    # it does move: an exact move that is never accepted would pass this check trivially
+    jumped = geweke_check(core, hypothesis=1, move_sets=("jump",), chains=150, steps=4)
+    assert np.min(jumped.pvalues["jump"]) > 1e-3, jumped.summary()
+    assert jumped.acceptance["jump"] > 0.05
     render = core.render
     core.render = lambda z: 1.3 * render(z)
     try:

@@ -39,7 +39,7 @@ def bridge(core, observation, start, config, key, progress: Callable[[str, int, 
         from ..errors import MitsubaP3Error
 
         raise MitsubaP3Error("the bridge tempers the neural term in: it needs the np3 likelihood's core")
-    kernels = make_kernels(core, config.kinds, config.ridge, config.symmetry, config.chart)
+    kernels = make_kernels(core, config.kinds, config.ridge, config.symmetry, config.chart, config.jump)
     index = jnp.asarray(start.index, jnp.int32)
     weight = np.float32(core.config.neural_weight)
     weighted = lambda w: {**observation, "neural_weight": np.float32(w)}  # noqa: E731

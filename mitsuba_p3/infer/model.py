@@ -12,7 +12,7 @@ Mitsuba launch -- or, with ``renderer="jax"``, from the pure-JAX tracer.
 from __future__ import annotations
 
 import functools
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -26,6 +26,34 @@ from .mcmc import Target
 
 # The ridge move's step: log s ~ N(0, RIDGE_STEP^2), a fifth of an e-fold of the colour's brightness.
 RIDGE_STEP = 0.2
+
+
+class WeightsConditional(NamedTuple):
+    """The material weights' (k_a, k_d, k_s) conditional given the colour, the pose, the class and the
+    shininess: a mixture of trivariate Gaussians (component log weights (C,), means (C, 3), precisions
+    and their Cholesky factors (C, 3, 3), log determinants (C,)), in the weights' natural unit."""
+    log_mix: object
+    mean: object
+    precision: object
+    chol: object
+    log_det_p: object
+
+    def log_q(self, w):
+        import jax
+        import jax.numpy as jnp
+
+        d = w - self.mean                                                           # (C, 3)
+        quad = jnp.einsum("ci,cij,cj->c", d, self.precision, d)
+        return jax.scipy.special.logsumexp(self.log_mix + 0.5 * self.log_det_p - 1.5 * jnp.log(2 * jnp.pi)
+                                           - 0.5 * quad)
+
+    def draw(self, key):
+        import jax
+
+        k_combo, k_noise = jax.random.split(key)
+        combo = jax.random.categorical(k_combo, self.log_mix)
+        noise = jax.random.normal(k_noise, (3,))
+        return self.mean[combo] + jax.scipy.linalg.solve_triangular(self.chol[combo].T, noise, lower=False)
 
 
 def contract_params(prior: Prior, z) -> dict:
@@ -347,20 +375,36 @@ class PosteriorCore:
         pass ``tempering`` and the prior (default: :meth:`Prior.log_prob`); ``state.logdensity`` is
         then that target's value.
         """
-        state, accepted, _ = self.scored_material_move(key, state, observation, tempering, log_prior)
+        state, accepted, _, _ = self.scored_material_move(key, state, observation, tempering, log_prior)
         return state, accepted
 
-    def scored_material_move(self, key, state, observation, tempering=1.0, log_prior=None):
+    def scored_material_move(self, key, state, observation, tempering=1.0, log_prior=None, jump: bool = False):
         """:meth:`material_move`, also returning log p(I | z) of the new state, computed from the
         bases it rendered: a tempered sampler needs the likelihood apart from the prior, and this
-        saves it a render per move."""
+        saves it a render per move. With ``jump``, the material kind's jump (:meth:`_kind_jump`, one
+        more render) comes first. Returns (state, colour and weights accepted, log likelihood, jump
+        accepted (False without ``jump``))."""
         import jax
         import jax.numpy as jnp
 
-        k_colour, k_weights = jax.random.split(key)
+        k_colour, k_weights, k_jump = jax.random.split(key, 3)
         bases = self._image(state.position, observation, bases=True)
-        # Both conditionals need only inner products of A, D, S and the residual r = I_obs - F,
-        # per channel: one (3, 4, 4) Gram matrix serves both moves.
+        gram = self._gram(bases, observation, tempering)
+        target = (tempering, log_prior or self.prior.log_prob)
+        jumped = jnp.asarray(False)
+        if jump:
+            state, jumped, bases, gram = self._kind_jump(k_jump, state, bases, gram, observation, target)
+        state, colour_ok = self._colour_move(k_colour, state, bases, gram, observation, target)
+        state, weights_ok = self._weights_move(k_weights, state, bases, gram, observation, target)
+        loglik = score(observation, self._image_from_bases(bases, state.position)[None], self.config,
+                       self.channels)[0]
+        return state, colour_ok & weights_ok, loglik, jumped
+
+    def _gram(self, bases, observation, tempering):
+        """(3, 4, 4) per channel, the tempered precision-weighted inner products of the bases A, D, S and
+        the residual r = I_obs - F: both material conditionals need only these."""
+        import jax.numpy as jnp
+
         vectors = jnp.concatenate([bases[..., :3, :], (observation["image"] - bases[..., 3, :])[..., None, :]],
                                   axis=-2)                                          # (h, w, 4, 3)
         precision = tempering * self.config.power / self.config.sigma ** 2
@@ -371,13 +415,45 @@ class PosteriorCore:
         vectors = vectors.reshape(-1, 12)                                           # (pixels, 4 x 3)
         full = (vectors.T @ vectors).reshape(4, 3, 4, 3)                            # one matmul: XLA's fast path
         # the Gaussian part of the likelihood (outliers are left to the MH test)
-        gram = jnp.einsum("icjc->cij", full) * precision
-        target = (tempering, log_prior or self.prior.log_prob)
-        state, colour_ok = self._colour_move(k_colour, state, bases, gram, observation, target)
-        state, weights_ok = self._weights_move(k_weights, state, bases, gram, observation, target)
-        loglik = score(observation, self._image_from_bases(bases, state.position)[None], self.config,
-                       self.channels)[0]
-        return state, colour_ok & weights_ok, loglik
+        return jnp.einsum("icjc->cij", full) * precision
+
+    def _kind_jump(self, key, state, bases, gram, observation, target):
+        """The material kind's jump: a new shininess drawn from its prior (a mixture of the fitted
+        materials' components: broad highlights and tight ones), the weights (k_a, k_d, k_s) drawn from
+        their conditional at the new shininess's bases (one render) given the colour, accepted with the
+        Hastings ratio of that independence proposal, whose reverse density takes the weights'
+        conditional at the current bases. The walk moves the shininess only locally and the weights
+        follow it only through the Gibbs update, so a run whose particles settled on a broad matte
+        highlight keeps them there (and a metal is read as a rubber); this move proposes the other
+        kind whole. Returns (state, accepted, bases and gram of the state kept)."""
+        import jax
+        import jax.numpy as jnp
+
+        k_component, k_noise, k_weights, k_accept = jax.random.split(key, 4)
+        g = self.prior.gmms["shininess"]
+        s = SLICES["shininess"].start
+        loc, std = float(g.mean[0]), float(g.std[0])
+        means, sds = jnp.asarray(g.means[:, 0]), jnp.sqrt(jnp.asarray(g.variances[:, 0]))
+        component = jax.random.categorical(k_component, jnp.log(jnp.asarray(g.weights)))
+        alpha = means[component] + sds[component] * jax.random.normal(k_noise)
+
+        def log_q_alpha(z_alpha):    # the prior's density in the natural unit (its Jacobian std cancels)
+            return g.log_prob((loc + std * z_alpha)[None])
+
+        position = state.position
+        moved = position.at[s].set((alpha - loc) / std)
+        new_bases = self._image(moved, observation, bases=True)
+        new_gram = self._gram(new_bases, observation, target[0])
+        colour = contract_params(self.prior, position)["colour"]
+        dims, w_loc, w_std = self._weight_coordinates()
+        old, new = self._weights_conditional(gram, colour), self._weights_conditional(new_gram, colour)
+        weights = new.draw(k_weights)
+        new_position = moved.at[dims].set((weights - w_loc) / w_std)
+        log_q_ratio = (log_q_alpha(position[s]) + old.log_q(w_loc + w_std * position[dims])
+                       - log_q_alpha(new_position[s]) - new.log_q(weights))
+        state, accepted = self._independence_mh(k_accept, state, new_position, new_bases, log_q_ratio,
+                                                observation, target)
+        return (state, accepted, jnp.where(accepted, new_bases, bases), jnp.where(accepted, new_gram, gram))
 
     def _image_from_bases(self, bases, z):
         """The image at position z whose pose, class and shininess gave ``bases`` (H, W, 4, 3)."""
@@ -422,27 +498,28 @@ class PosteriorCore:
         return self._independence_mh(k_accept, state, new_position, bases, log_q(current) - log_q(proposal),
                                      observation, target)
 
-    def _weights_move(self, key, state, bases, gram, observation, target):
-        """The weights' conditional given the colour: a mixture of 8 trivariate Gaussians
-        (their priors are independent 2-component GMMs)."""
+    def _weight_coordinates(self):
+        """The weights (k_a, k_d, k_s): their coordinates in z and the affine map's loc and std (3,)."""
+        import jax.numpy as jnp
+
+        gmms = [self.prior.gmms[n] for n in ("ambient", "diffuse", "specular")]
+        return (jnp.array([SLICES[n].start for n in ("ambient", "diffuse", "specular")]),
+                jnp.array([g.mean[0] for g in gmms]), jnp.array([g.std[0] for g in gmms]))
+
+    def _weights_conditional(self, gram, colour) -> "WeightsConditional":
+        """The weights' conditional given the colour and the bases whose ``gram`` is given: a mixture of
+        8 trivariate Gaussians (their priors are independent 2-component GMMs)."""
         import itertools
 
         import jax
         import jax.numpy as jnp
 
-        names = ("ambient", "diffuse", "specular")
-        position = state.position
-        dims = jnp.array([SLICES[n].start for n in names])
-        gmms = [self.prior.gmms[n] for n in names]
+        gmms = [self.prior.gmms[n] for n in ("ambient", "diffuse", "specular")]
         # every combination of one component per weight: weights (C,), means and variances (C, 3)
         combos = list(itertools.product(*[range(len(g.weights)) for g in gmms]))
         log_w = jnp.array([sum(np.log(g.weights[i]) for g, i in zip(gmms, c)) for c in combos])
         mu = jnp.array([[g.means[i, 0] for g, i in zip(gmms, c)] for c in combos])
         var = jnp.array([[g.variances[i, 0] for g, i in zip(gmms, c)] for c in combos])
-        loc = jnp.array([g.mean[0] for g in gmms])
-        std = jnp.array([g.std[0] for g in gmms])
-
-        colour = contract_params(self.prior, position)["colour"]
         # per channel the image is w . (k_a A, k_d D, k_s S) + F with w = (c, c, 1)
         w = jnp.stack([colour, colour, jnp.ones(3)], axis=-1)                      # (3 channels, 3)
         lam = jnp.einsum("ci,cij,cj->ij", w, gram[:, :3, :3], w) + 1e-9 * jnp.eye(3)
@@ -454,21 +531,22 @@ class PosteriorCore:
         log_det_p = 2 * jnp.sum(jnp.log(jax.vmap(jnp.diag)(chol)), axis=1)
         log_evidence = (-0.5 * jnp.sum(jnp.log(var), axis=1) - 0.5 * log_det_p + 0.5 * jnp.sum(h * mean, axis=1)
                         - 0.5 * jnp.sum(mu * mu / var, axis=1))
-        log_mix = jax.nn.log_softmax(log_w + log_evidence)
+        return WeightsConditional(jax.nn.log_softmax(log_w + log_evidence), mean, precision, chol, log_det_p)
 
-        def log_q(w):
-            d = w - mean                                                            # (C, 3)
-            quad = jnp.einsum("ci,cij,cj->c", d, precision, d)
-            return jax.scipy.special.logsumexp(log_mix + 0.5 * log_det_p - 1.5 * jnp.log(2 * jnp.pi) - 0.5 * quad)
+    def _weights_move(self, key, state, bases, gram, observation, target):
+        """The weights' conditional given the colour (:meth:`_weights_conditional`): an independence
+        proposal drawn from it, accepted with the exact log joint."""
+        import jax
 
-        k_combo, k_noise, k_accept = jax.random.split(key, 3)
-        combo = jax.random.categorical(k_combo, log_mix)
-        noise = jax.random.normal(k_noise, (3,))
-        proposal = mean[combo] + jax.scipy.linalg.solve_triangular(chol[combo].T, noise, lower=False)
+        k_draw, k_accept = jax.random.split(key)
+        position = state.position
+        dims, loc, std = self._weight_coordinates()
+        conditional = self._weights_conditional(gram, contract_params(self.prior, position)["colour"])
+        proposal = conditional.draw(k_draw)
         current = loc + std * position[dims]
         new_position = position.at[dims].set((proposal - loc) / std)
-        return self._independence_mh(k_accept, state, new_position, bases, log_q(current) - log_q(proposal),
-                                     observation, target)
+        return self._independence_mh(k_accept, state, new_position, bases,
+                                     conditional.log_q(current) - conditional.log_q(proposal), observation, target)
 
     def _independence_mh(self, key, state, new_position, bases, log_q_ratio, observation, target):
         """Accept or reject an independence proposal with the exact (tempered) log joint, the image

@@ -115,6 +115,9 @@ class SMCConfig:
     # symmetric copy's width, not the distance between the copies the symmetry move spreads particles over
     # (False: the walk in z with the covariance of all copies). docs/notebook.md, "The walk in a chart"
     chart: bool = True
+    # every material update starts with the material kind's jump: a shininess from its prior and the weights
+    # from their conditional there, one more render (:meth:`~mitsuba_p3.infer.model.PosteriorCore._kind_jump`)
+    jump: bool = False
     islands: int = 2               # independent SMC runs per hypothesis and round, their evidence pooled
     rounds: int = 1                # rounds of runs; a round after the first runs only the contenders
     decided: float = 0.99          # no further round once the leader has this weight, even at its worst run's estimate
@@ -210,7 +213,7 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
     import jax
     import jax.numpy as jnp
 
-    kernels = make_kernels(core, config.kinds, config.ridge, config.symmetry, config.chart)
+    kernels = make_kernels(core, config.kinds, config.ridge, config.symmetry, config.chart, config.jump)
     space = hypotheses_of(core.prior, config.kinds)
     rows = Hypotheses(tuple(space.names[i] for i in index), *(a[index] for a in space[1:]))
     index_j = jnp.asarray(index, jnp.int32)
@@ -236,7 +239,7 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
     # a coarse wide start (:mod:`mitsuba_p3.infer.coarse`): its steps score and move at 1 / coarse of the resolution
     coarse = coarse_view(core, observation, image, config.coarse) if width > 1 and config.coarse > 1 else None
     if coarse:
-        start_kernels = make_kernels(coarse[0], config.kinds, config.ridge, config.symmetry, config.chart)
+        start_kernels = make_kernels(coarse[0], config.kinds, config.ridge, config.symmetry, config.chart, config.jump)
         start_observation = coarse[1]
         start_move = moves(start_kernels, start_observation)
     else:

@@ -65,7 +65,7 @@ class Kernels(NamedTuple):
 
 
 @functools.lru_cache(maxsize=4)
-def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str, chart: bool) -> Kernels:
+def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str, chart: bool, jump: bool) -> Kernels:
     """Jitted kernels for one :class:`PosteriorCore`: scores of all particles, the two moves of all
     particles at per-row temperatures, and (for the bridge) the colour and whole log likelihood of
     all particles from one render each. Every row is one run of one hypothesis; ``index`` (R,) names
@@ -73,7 +73,9 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str, cha
     turns the object (:meth:`~mitsuba_p3.infer.model.PosteriorCore.symmetry_turn`) at the start of
     every material update and renders the turn (exact); "free" turns it after every walk without a
     render (the likelihood taken as unchanged, true only up to the outline's rasterisation). ``chart``:
-    the walk moves in each particle's symmetry chart (:mod:`mitsuba_p3.infer.symmetry`), else in z."""
+    the walk moves in each particle's symmetry chart (:mod:`mitsuba_p3.infer.symmetry`), else in z.
+    ``jump``: every material update starts with the material kind's jump
+    (:meth:`~mitsuba_p3.infer.model.PosteriorCore.scored_material_move`; one more render)."""
     import jax
     import jax.numpy as jnp
     from blackjax.mcmc.random_walk import RWState
@@ -158,7 +160,8 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str, cha
         """The material Metropolis-within-Gibbs update at each row's temperature (one render of
         the material bases per particle; the result is scored from them), after the rendered
         symmetry move where ``symmetry`` is "rendered"; returns (state, each row's material
-        acceptance (R,), its turn acceptance (R,), NaN without the rendered turn)."""
+        acceptance (R,), its turn acceptance (R,), NaN without the rendered turn, and the material
+        kind's jump acceptance (R,), NaN without ``jump``)."""
         turned = jnp.full(state[1].shape[:1], jnp.nan)
         if symmetry == "rendered":
             key, k_turn = jax.random.split(key)
@@ -169,16 +172,17 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str, cha
 
         def one(key, position, logprior_value, loglik_value, row_hypothesis, lam_value):
             state = RWState(position, logprior_value + lam_value * loglik_value)
-            new, accepted, new_loglik = core.scored_material_move(key, state, observation, lam_value,
-                                                                  lambda p: log_prior(p, row_hypothesis))
-            return new.position, new_loglik, accepted
+            new, accepted, new_loglik, jumped = core.scored_material_move(
+                key, state, observation, lam_value, lambda p: log_prior(p, row_hypothesis), jump)
+            return new.position, new_loglik, accepted, jumped
 
         keys = jax.random.split(key, h.shape[0])
-        moved, new_loglik, accepted = jax.vmap(one)(keys, z.reshape(-1, z.shape[-1]), logprior.reshape(-1),
-                                                    loglik.reshape(-1), h, lam)
+        moved, new_loglik, accepted, jumped = jax.vmap(one)(keys, z.reshape(-1, z.shape[-1]), logprior.reshape(-1),
+                                                            loglik.reshape(-1), h, lam)
         moved = moved.reshape(z.shape)
+        jumped = jumped.reshape(loglik.shape).mean(axis=1) if jump else jnp.full(loglik.shape[:1], jnp.nan)
         return (moved, new_loglik.reshape(loglik.shape), logprior_all(moved, index)), \
-            accepted.reshape(loglik.shape).mean(axis=1), turned
+            accepted.reshape(loglik.shape).mean(axis=1), turned, jumped
 
     prior_gradient = jax.vmap(jax.vmap(jax.grad(log_prior)))
 
@@ -230,19 +234,21 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str, cha
     return Kernels(score, walk, material, parts, jax.jit(logprior_all), gradient, jax.jit(turn), chart)
 
 
-def kernels(core, kinds: bool, ridge: int, symmetry: str | None = None, chart: bool | None = None) -> Kernels:
-    """The jitted moves of one core (cached: a core serves every image of a data set); ``symmetry`` and
-    ``chart`` (the walk in each particle's symmetry chart) default to the SMC's
-    (:class:`~mitsuba_p3.infer.smc.SMCConfig`)."""
+def kernels(core, kinds: bool, ridge: int, symmetry: str | None = None, chart: bool | None = None,
+            jump: bool | None = None) -> Kernels:
+    """The jitted moves of one core (cached: a core serves every image of a data set); ``symmetry``,
+    ``chart`` (the walk in each particle's symmetry chart) and ``jump`` (the material kind's jump)
+    default to the SMC's (:class:`~mitsuba_p3.infer.smc.SMCConfig`)."""
     from .smc import SMCConfig
 
     symmetry = SMCConfig.symmetry if symmetry is None else symmetry
     chart = SMCConfig.chart if chart is None else bool(chart)
+    jump = SMCConfig.jump if jump is None else bool(jump)
     if symmetry not in SYMMETRY_MOVES:
         from ..errors import ConfigError
 
         raise ConfigError(f"symmetry must be one of {SYMMETRY_MOVES}, not {symmetry!r}")
-    return _kernels(core, tuple(WALK_MASK.tolist()), kinds, ridge, symmetry, chart)
+    return _kernels(core, tuple(WALK_MASK.tolist()), kinds, ridge, symmetry, chart, jump)
 
 
 def covariance_factors(position: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -296,7 +302,7 @@ def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int
         tril = jnp.asarray(walk_factors(folded(position, centres) if kernels.chart else position, state.scale))
         centres = jnp.asarray(centres, jnp.float32)
         particles = tuple(jnp.asarray(a) for a in state[:3])
-        walks, materials, turns = [], [], []
+        walks, materials, turns, jumps = [], [], [], []
         kept = [particles] if path else []               # waste-free keeps every sweep's states
         final = bool(np.all(state.tempering >= 1.0))      # every row at lambda = 1: the last move
         total = sweeps + (final_sweeps if final else 0)
@@ -305,9 +311,11 @@ def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int
             particles, accepted = kernels.walk(k_walk, particles, index, lam, tril, centres, observation)
             walks.append(accepted)
             if (i + 1) % material_every == 0 or i == total - 1:
-                particles, accepted, turned = kernels.material(k_material, particles, index, lam, observation)
+                particles, accepted, turned, jumped = kernels.material(k_material, particles, index, lam,
+                                                                       observation)
                 materials.append(accepted)
                 turns.append(turned)
+                jumps.append(jumped)
             if path:
                 kept.append(particles)
         gradients = []
@@ -332,6 +340,8 @@ def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int
         rates = {"walk": np.mean(np.asarray(walks), axis=0), "material": np.mean(np.asarray(materials), axis=0)}
         if not np.isnan(np.asarray(turns)).all():
             rates["turn"] = np.mean(np.asarray(turns), axis=0)
+        if not np.isnan(np.asarray(jumps)).all():
+            rates["jump"] = np.mean(np.asarray(jumps), axis=0)
         if gradients:
             rates["gradient"] = np.mean(np.asarray(gradients), axis=0)
         return moved, rates
