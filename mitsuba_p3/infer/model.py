@@ -423,9 +423,10 @@ class PosteriorCore:
         their conditional at the new shininess's bases (one render) given the colour, accepted with the
         Hastings ratio of that independence proposal, whose reverse density takes the weights'
         conditional at the current bases. The walk moves the shininess only locally and the weights
-        follow it only through the Gibbs update, so a run whose particles settled on a broad matte
-        highlight keeps them there (and a metal is read as a rubber); this move proposes the other
-        kind whole. Returns (state, accepted, bases and gram of the state kept)."""
+        follow it only through the Gibbs update, so a run whose particles settled on one kind of
+        highlight could keep them there; this move proposes the other kind whole (on fsclvr's misread
+        metals it found no missed mode: docs/notebook.md). Returns (state, accepted, bases and gram of
+        the state kept)."""
         import jax
         import jax.numpy as jnp
 
