@@ -62,17 +62,15 @@ class GewekeResult:
 
 
 def successive_conditional(core, hypothesis: int, moves: str, chains: int, steps: int, seed: int = 0,
-                           walk_scale: float = 0.05, tempering: float = 1.0,
-                           jump: bool = False) -> tuple[np.ndarray, float]:
+                           walk_scale: float = 0.05, tempering: float = 1.0) -> tuple[np.ndarray, float]:
     """Run ``chains`` successive-conditional chains of one hypothesis (a row of
     :func:`~mitsuba_p3.infer.hypotheses.hypotheses_of` without kinds) for ``steps`` steps with the SMC
     move set ``moves`` (``walk``: random walk + symmetry + ridge; ``material``: the material update;
     ``both``). The walk's covariance is ``walk_scale`` times the prior draws' own (fixed: an adaptive
     covariance would be another test). The moves target p(z) p(y | z)^``tempering``: anything but 1 is a
     deliberately wrong kernel (whose error is of the posterior's width, which this check barely sees:
-    the module docstring). ``jump``: the material update starts with the material kind's jump.
-    Returns the chains' final points (chains, 15) and the mean acceptance (of the jump alone, where
-    ``moves`` is "jump": the material update with the jump)."""
+    the module docstring); ``jump``: the material update that starts with the material kind's jump.
+    Returns the chains' final points (chains, 15) and the mean acceptance (for ``jump``, the jump's)."""
     import jax
     import jax.numpy as jnp
 
@@ -82,8 +80,7 @@ def successive_conditional(core, hypothesis: int, moves: str, chains: int, steps
     rng = np.random.default_rng(seed)
     space = hypotheses_of(core.prior, False)
     start = initial_particles(core.prior, rng, chains, space)[hypothesis]           # (chains, 15)
-    jump = jump or moves == "jump"
-    k = kernels(core, False, 1, jump=jump)
+    k = kernels(core, False, 1, jump=moves == "jump")
     tril = jnp.asarray(walk_scale * covariance_factors(start[None], WALK_MASK), jnp.float32)   # (1, d, d)
     index = jnp.asarray([hypothesis], jnp.int32)
     lam = jnp.full(1, tempering, jnp.float32)
@@ -120,7 +117,7 @@ def successive_conditional(core, hypothesis: int, moves: str, chains: int, steps
 
 
 def geweke_check(core, hypothesis: int = 0, move_sets=("walk", "material"), chains: int = 400, steps: int = 10,
-                 seed: int = 0, walk_scale: float = 0.05, tempering: float = 1.0, jump: bool = False) -> GewekeResult:
+                 seed: int = 0, walk_scale: float = 0.05, tempering: float = 1.0) -> GewekeResult:
     """The successive-conditional test of each move set (module docstring): KS p-values of the chains'
     final states against fresh prior draws of the same hypothesis (``tempering``: see
     :func:`successive_conditional`)."""
@@ -135,7 +132,7 @@ def geweke_check(core, hypothesis: int = 0, move_sets=("walk", "material"), chai
     pvalues, acceptance = {}, {}
     for moves in move_sets:
         end, rate = successive_conditional(core, hypothesis, moves, chains, steps, seed, walk_scale,
-                                           tempering, jump)
+                                           tempering)
         values = natural(core.prior, end)
         pvalues[moves] = np.array([ks_2samp(values[:, i], reference[:, i]).pvalue for i in range(values.shape[1])])
         acceptance[moves] = rate
