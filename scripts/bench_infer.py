@@ -29,7 +29,9 @@ Settings: ``smc`` is the default of ``infer`` (tempered SMC over the shape class
 the fitted Gaussian noise model with hard shadows); ``smc-robust`` the same with the fitted
 inlier/outlier mixture; ``smc-persistent`` and ``smc-wastefree`` the default with persistent
 sampling or waste-free SMC (8 sweeps kept from 32 of 256 particles); ``smc-narrow`` the default without its
-coarse wide start, rendered turns or chart walk (the default before 2026-11-26); ``smc-unfolded`` the default
+coarse wide start, rendered turns, chart walk or window term (the default before 2026-11-26); ``smc-window-alone``
+the default scoring a scene whose object left the window by the window alone (the default until the eighth session,
+``SMCConfig.inside_window``); ``smc-unfolded`` the default
 with the walk in z, not in a symmetry chart (the default before the chart walk); ``smc-jump`` the default with
 the material kind's jump; ``mh-paper`` the MH evaluation preset with the paper's likelihood
 (sigma 1, no shadows), the project's old default; ``mh-fitted`` that sampler with the fitted
@@ -67,7 +69,9 @@ CONFIGS = {"mh-paper": {"noise": "paper"}, "mh-fitted": {"noise": "fitted"},
            # the moves issue 40 asked to compare (docs/notebook.md): persistent sampling, waste-free SMC
            "smc-persistent": {"noise": "fitted", "sampler": SMCConfig(persistent=True, wide_steps=0)},
            "smc-wastefree": {"noise": "fitted", "sampler": SMCConfig(waste_free=8, particles=256, wide_steps=0)},
-           "smc-narrow": {"noise": "fitted", "sampler": SMCConfig(wide_steps=0, symmetry="free", chart=False)},
+           "smc-narrow": {"noise": "fitted", "sampler": SMCConfig(wide_steps=0, symmetry="free", chart=False,
+                                                                  inside_window=False)},
+           "smc-window-alone": {"noise": "fitted", "sampler": SMCConfig(inside_window=False)},
            "smc-unfolded": {"noise": "fitted", "sampler": SMCConfig(chart=False)},
            "smc-jump": {"noise": "fitted", "sampler": SMCConfig(jump=True)}}
 CHECKED = ("shift", "scale", "colour")

@@ -623,6 +623,49 @@ def test_a_windowed_likelihood_scores_the_window_around_the_object(fitted, rende
     assert core.window_for(image, (12, 12)) is None
 
 
+def test_a_scene_whose_object_leaves_the_window_has_likelihood_zero(fitted):
+    """The window holds the object: the truth scores as the window's pixels say, the same scene moved
+    off the window has log likelihood OUTSIDE_WINDOW (by the likelihood, the material move and the
+    NP3 bridge's parts alike, so no move lets it escape), unless the observation says to score such a
+    scene by the window alone; the empty floor's evidence is the bare score. The centre's pixel is
+    the one whose camera ray passes through it."""
+    import jax
+    import jax.numpy as jnp
+    from blackjax.mcmc.random_walk import RWState
+
+    from mitsuba_p3.infer.model import PosteriorCore
+    from mitsuba_p3.infer.window import OUTSIDE_WINDOW
+
+    outside = float(np.float32(OUTSIDE_WINDOW))
+    core = PosteriorCore(fitted, LikelihoodConfig("p3", sigma=0.03, shadows=True), "mitsuba", 120, 160)
+    origin, rays = core.camera_rays
+    for i, j in [(0, 0), (37, 121), (119, 159)]:
+        np.testing.assert_allclose(core.pixel_of(jnp.asarray(origin + 0.45 * rays[i * 160 + j])), [i, j], atol=1e-3)
+    image = make_renderer_image(fitted)
+    window = core.window_for(image, (48, 64))
+    inside, bare = core.observe(image, window), core.observe(image, window, outside=0.0)
+    truth = {**TRUTH, "class_probabilities": np.array([0.001, 0.998, 0.001])}
+    unconstrain = lambda x: jnp.asarray(fitted.prior.unconstrain(  # noqa: E731
+        {k: np.asarray(v)[None] for k, v in x.items() if k != "kappa"})[0], jnp.float32)
+    z = unconstrain(truth)
+    assert float(core.window_log_term(z, inside)) == 0.0
+    assert float(core.log_likelihood(z, inside)) == float(core.image_log_likelihood(z, inside))
+    # the object moved to the far side of the floor, off the window
+    pixel = np.asarray(core.pixel_of(jnp.asarray([*truth["shift"], truth["scale"][2]], jnp.float32)))
+    assert window[0] <= pixel[0] < window[0] + window[2] and window[1] <= pixel[1] < window[1] + window[3]
+    away = unconstrain({**truth, "shift": np.array([-truth["shift"][0] - 0.1 * np.sign(truth["shift"][0] + 1e-9),
+                                                    0.13])})
+    assert float(core.window_log_term(away, inside)) == outside
+    assert float(core.log_likelihood(away, inside)) == outside
+    assert float(core.log_likelihood(away, bare)) == float(core.image_log_likelihood(away, bare)) > -1e6
+    assert all(float(part) == outside for part in core.log_likelihood_parts(away, inside))
+    state = RWState(away, core.logdensity(away, inside))
+    moved, _, loglik, _ = core.scored_material_move(jax.random.PRNGKey(0), state, inside)
+    assert float(loglik) == outside and float(moved.logdensity) <= -1e29
+    # a whole-image observation has no window to leave
+    assert float(core.window_log_term(away, core.observe(image))) == 0.0
+
+
 def test_footprint_start_weights_average_to_one(fitted):
     """Draws from the defensive mixture, weighed by prior / mixture, have mean weight 1 (the
     first step's evidence estimate stays unbiased), and half of them land near the footprint."""
@@ -1046,9 +1089,10 @@ def test_an_sbc_cache_made_before_the_wide_start_became_the_default_is_not_resum
     from mitsuba_p3.evaluate.sbc import settings_tag
     from mitsuba_p3.infer.smc import SMCConfig
 
-    assert settings_tag(SMCConfig(wide=1, wide_steps=0, coarse=1, symmetry="free", chart=False, seed=5)) == "{}"
+    assert settings_tag(SMCConfig(wide=1, wide_steps=0, coarse=1, symmetry="free", chart=False, inside_window=False,
+                                  seed=5)) == "{}"
     assert json.loads(settings_tag(SMCConfig())) == {"wide": 4, "wide_steps": 6, "coarse": 2, "symmetry": "rendered",
-                                                  "chart": True}
+                                                  "chart": True, "inside_window": True}
     assert json.loads(settings_tag(SMCConfig(islands=3)))["islands"] == 3
 
 

@@ -53,4 +53,4 @@ def coarse_view(core, observation: dict, image: np.ndarray, factor: int):
     top, left = (int(v) // factor for v in observation["window"])
     rows, cols = (max(8, n // factor) for n in np.shape(observation["image"])[:2])
     top, left = min(top, height // factor - rows), min(left, width // factor - cols)
-    return coarse, coarse.observe(small, (top, left, rows, cols))
+    return coarse, coarse.observe(small, (top, left, rows, cols), float(observation["outside_window"]))

@@ -23,6 +23,7 @@ from ..render.contract import OBJECT_SHAPES
 from ..space import DIMENSION, HYPOTHESES, OBJECT_KEYS, SLICES, render_params
 from .likelihood import LikelihoodConfig, observe, score, whiten
 from .mcmc import Target
+from .window import OUTSIDE_WINDOW, pixel_of, window_for, window_log_term
 
 # The ridge move's step: log s ~ N(0, RIDGE_STEP^2), a fifth of an e-fold of the colour's brightness.
 RIDGE_STEP = 0.2
@@ -197,39 +198,39 @@ class PosteriorCore:
             cls._cache[key] = cls(fitted, likelihood, renderer, height, width)
         return cls._cache[key]
 
-    def observe(self, observed: np.ndarray, window: tuple[int, int, int, int] | None = None) -> dict:
+    def observe(self, observed: np.ndarray, window: tuple[int, int, int, int] | None = None,
+                outside: float = OUTSIDE_WINDOW) -> dict:
         """The observation pytree of an image at this core's size; with ``window`` (top, left, height,
-        width) only that window of it is scored (its ``window`` entry is the offset the renders take)."""
+        width) only that window of it is scored (its ``window`` entry is the offset the renders take),
+        and a scene whose object's centre lies outside it has log likelihood ``outside`` (its
+        ``outside_window`` entry; :mod:`mitsuba_p3.infer.window`; 0 scores such a scene by the window alone)."""
         if window is None:
             return observe(observed, self.config, self.channels, self.empty, self.spectra)
         top, left, height, width = window
         crop = lambda image: np.asarray(image)[top:top + height, left:left + width]  # noqa: E731
         observation = observe(crop(observed), self.config, self.channels, crop(self.empty), self.spectra)
         observation["window"] = np.array([top, left], np.int32)
+        observation["outside_window"] = np.float32(outside)
         return observation
 
     def window_for(self, observed: np.ndarray, size: tuple[int, int], margin: int = 8):
-        """Where to score an image when only a ``size`` window is: centred on the largest connected
-        part of its footprint (object and shadow, :mod:`mitsuba_p3.infer.footprint`). None (score the
-        whole image) without a fitted footprint threshold, with an empty footprint, or when that part
-        with ``margin`` pixels around it does not fit the window."""
-        from scipy import ndimage
+        """Where to score an image when only a ``size`` window is (:func:`~mitsuba_p3.infer.window.window_for`)."""
+        return window_for(self, observed, size, margin)
 
-        from .footprint import footprint_mask
+    @functools.cached_property
+    def camera(self):
+        """The fitted scene's camera."""
+        return self.fitted.scene().camera
 
-        height, width = min(size[0], self.renderer.height), min(size[1], self.renderer.width)
-        if self.footprint_threshold is None or (height, width) == (self.renderer.height, self.renderer.width):
-            return None
-        labels, count = ndimage.label(footprint_mask(observed, self.empty, self.footprint_threshold))
-        if count == 0:
-            return None
-        largest = 1 + int(np.argmax(ndimage.sum(labels > 0, labels, range(1, count + 1))))
-        rows, cols = np.nonzero(labels == largest)
-        if np.ptp(rows) + 1 + 2 * margin > height or np.ptp(cols) + 1 + 2 * margin > width:
-            return None
-        top = int(np.clip((rows.min() + rows.max() + 1 - height) // 2, 0, self.renderer.height - height))
-        left = int(np.clip((cols.min() + cols.max() + 1 - width) // 2, 0, self.renderer.width - width))
-        return top, left, height, width
+    def pixel_of(self, points):
+        """(..., 2) the (row, column) of this core's image in which 3-D points (..., 3) appear
+        (:func:`~mitsuba_p3.infer.window.pixel_of`)."""
+        return pixel_of(self.camera, self.renderer.height, self.renderer.width, points)
+
+    def window_log_term(self, z, observation):
+        """0, or the observation's ``outside_window`` where z's object lies outside its scoring window
+        (:func:`~mitsuba_p3.infer.window.window_log_term`)."""
+        return window_log_term(self, z, observation)
 
     def _image(self, z, observation, bases: bool = False):
         """The render (or material bases) of z that ``observation`` scores: its window, or the whole image."""
@@ -256,15 +257,20 @@ class PosteriorCore:
         return self._render(contract_params(self.prior, z))
 
     def log_likelihood(self, z, observation):
-        """log p(I | z) of one position z (15,) (JAX; vmap for many)."""
+        """log p(I | z) of one position z (15,) (JAX; vmap for many): the image's score and the window's
+        term (:meth:`window_log_term`)."""
+        return self.image_log_likelihood(z, observation) + self.window_log_term(z, observation)
+
+    def image_log_likelihood(self, z, observation):
+        """The score of z's render alone, without the window's term (the empty floor's evidence needs it)."""
         return score(observation, self._image(z, observation)[None], self.config, self.channels)[0]
 
     def log_likelihood_parts(self, z, observation):
         """(colour, whole) log likelihood of one position z from one render (JAX; vmap for many): the
         colour term alone, and with the neural term at the observation's weight (NP3's bridge)."""
-        image = self._image(z, observation)[None]
-        return (score({**observation, "neural_weight": 0.0}, image, self.config, self.channels)[0],
-                score(observation, image, self.config, self.channels)[0])
+        image, term = self._image(z, observation)[None], self.window_log_term(z, observation)
+        return (score({**observation, "neural_weight": 0.0}, image, self.config, self.channels)[0] + term,
+                score(observation, image, self.config, self.channels)[0] + term)
 
     def logdensity(self, z, observation):
         """log p(z) + log p(I | z) of one position z (15,) (JAX; vmap for many)."""
@@ -396,8 +402,8 @@ class PosteriorCore:
             state, jumped, bases, gram = self._kind_jump(k_jump, state, bases, gram, observation, target)
         state, colour_ok = self._colour_move(k_colour, state, bases, gram, observation, target)
         state, weights_ok = self._weights_move(k_weights, state, bases, gram, observation, target)
-        loglik = score(observation, self._image_from_bases(bases, state.position)[None], self.config,
-                       self.channels)[0]
+        loglik = (score(observation, self._image_from_bases(bases, state.position)[None], self.config,
+                        self.channels)[0] + self.window_log_term(state.position, observation))
         return state, colour_ok & weights_ok, loglik, jumped
 
     def _gram(self, bases, observation, tempering):
@@ -557,8 +563,9 @@ class PosteriorCore:
 
         tempering, log_prior = target
         image = self._image_from_bases(bases, new_position)
-        new_logdensity = (log_prior(new_position)
-                          + tempering * score(observation, image[None], self.config, self.channels)[0])
+        new_logdensity = (log_prior(new_position) + tempering * (
+            score(observation, image[None], self.config, self.channels)[0] + self.window_log_term(new_position,
+                                                                                                 observation)))
         accept = jnp.log(jax.random.uniform(key)) < new_logdensity - state.logdensity + log_q_ratio
         return (type(state)(jnp.where(accept, new_position, state.position),
                             jnp.where(accept, new_logdensity, state.logdensity)), accept)

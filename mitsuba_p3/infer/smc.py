@@ -23,7 +23,10 @@ makes the search cheaper without changing what is estimated.
 window centred on the largest connected part of the image's footprint
 (:meth:`~mitsuba_p3.infer.model.PosteriorCore.window_for`), and every render of the run traces
 only those pixels. Every hypothesis is scored on the same pixels, so their evidences stay
-comparable; an image whose footprint does not fit the window is scored whole.
+comparable; an image whose footprint does not fit the window is scored whole. The window's
+pixels stand for the whole image only while the object is in it, so a scene whose object's
+centre lies outside it has likelihood zero (``inside_window``,
+:mod:`mitsuba_p3.infer.window`).
 
 **A coarse wide start.** The first ``wide_steps`` temperatures, where the pose is chosen, move
 ``wide`` x N particles scored at 1 / ``coarse`` of the resolution (:mod:`mitsuba_p3.infer.coarse`:
@@ -79,7 +82,7 @@ from .smc_moves import kernels as make_kernels
 
 # Settings whose default changed after they were added, at the value they had before: a record (an
 # evaluation's run.json, an SBC cache's tag) that does not name them was made without a wide start
-DEFAULTS_BEFORE = {"wide": 1, "wide_steps": 0, "coarse": 1, "symmetry": "free", "chart": False}
+DEFAULTS_BEFORE = {"wide": 1, "wide_steps": 0, "coarse": 1, "symmetry": "free", "chart": False, "inside_window": False}
 
 
 @dataclass(frozen=True)
@@ -118,6 +121,11 @@ class SMCConfig:
     # every material update starts with the material kind's jump: a shininess from its prior and the weights
     # from their conditional there, one more render (:meth:`~mitsuba_p3.infer.model.PosteriorCore._kind_jump`)
     jump: bool = False
+    # a scene whose object's centre lies outside the scoring window has likelihood 0 (the window's assumption,
+    # :mod:`mitsuba_p3.infer.window`); False scores it by the window alone, where
+    # the bare floor it shows beats every scene a little off the object (docs/notebook.md, "Runs that leave
+    # the window")
+    inside_window: bool = True
     islands: int = 2               # independent SMC runs per hypothesis and round, their evidence pooled
     rounds: int = 1                # rounds of runs; a round after the first runs only the contenders
     decided: float = 0.99          # no further round once the leader has this weight, even at its worst run's estimate
@@ -303,6 +311,13 @@ def _rounds(core, observation, image, space: Hypotheses, config: SMCConfig, rng,
     return rows, pooled, len(parts)
 
 
+def outside_window(config: SMCConfig) -> float:
+    """The log likelihood of a scene whose object lies outside the scoring window, under ``config``."""
+    from .window import OUTSIDE_WINDOW
+
+    return OUTSIDE_WINDOW if config.inside_window else 0.0
+
+
 def sample_smc(core, observation, config: SMCConfig | None = None,
                progress: Callable[[str, int, int], None] | None = None,
                start: Particles | None = None) -> SMCRun:
@@ -325,7 +340,7 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
     if start is not None:
         window = start.window
         if "window" not in observation:
-            observation = core.observe(image, window) if window else observation
+            observation = core.observe(image, window, outside_window(config)) if window else observation
         # streams of their own: P3's run used the seed's, and the bridge's moves must not repeat them
         rng, key = np.random.default_rng([config.seed, 1]), jax.random.fold_in(key, 1)
         rows, rounds = bridge(core, observation, start.rows, config, key, progress), 1
@@ -333,7 +348,7 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
     else:
         if config.window and "window" not in observation:
             window = core.window_for(image, tuple(config.window))
-            observation = core.observe(image, window) if window else observation
+            observation = core.observe(image, window, outside_window(config)) if window else observation
         rows, pooled, rounds = _rounds(core, observation, image, space, config, rng, key, progress)
     run = _run(core, rows, pooled, space, config, rng, window, rounds, time.perf_counter() - begin)
     run.statistics.update(object_evidence(core, observation, rows, space, pooled))

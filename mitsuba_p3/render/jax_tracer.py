@@ -61,20 +61,24 @@ def batching_for(platform: str | None = None) -> str:
     return "vmap" if platform in ("gpu", "cuda", "rocm") else "map"
 
 
-def camera_rays(camera: Camera, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
-    """Pinhole rays through pixel centres: origin (3,) and unit directions (H*W, 3), row-major.
-
-    The image's left edge lies towards ``cross(up, forward)`` and its top towards
-    the camera's up vector (Mitsuba's perspective camera convention).
-    """
+def camera_frame(camera: Camera, height: int, width: int) -> tuple:
+    """The pinhole camera's origin, forward, left and up unit vectors (3,) and the tangents of its half
+    fields of view (x, y) for a ``height`` x ``width`` image: the image's left edge lies towards
+    ``cross(up, forward)`` and its top towards the camera's up vector (Mitsuba's perspective camera
+    convention)."""
     origin = np.asarray(camera.origin, np.float64)
     forward = np.asarray(camera.target, np.float64) - origin
     forward /= np.linalg.norm(forward)
     left = np.cross(camera.up, forward)
     left /= np.linalg.norm(left)
-    up = np.cross(forward, left)
     tan_y = np.tan(np.radians(camera.fov) / 2)
-    tan_x = tan_y * width / height
+    return origin, forward, left, np.cross(forward, left), tan_y * width / height, tan_y
+
+
+def camera_rays(camera: Camera, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pinhole rays through pixel centres: origin (3,) and unit directions (H*W, 3), row-major
+    (:func:`camera_frame`'s convention)."""
+    origin, forward, left, up, tan_x, tan_y = camera_frame(camera, height, width)
     u = (np.arange(width) + 0.5) / width
     v = (np.arange(height) + 0.5) / height
     uu, vv = np.meshgrid(u, v)
