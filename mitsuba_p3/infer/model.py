@@ -396,14 +396,16 @@ class PosteriorCore:
         k_colour, k_weights, k_jump = jax.random.split(key, 3)
         bases = self._image(state.position, observation, bases=True)
         gram = self._gram(bases, observation, tempering)
-        target = (tempering, log_prior or self.prior.log_prob)
+        # the material moves leave the pose, so the window's term (mitsuba_p3.infer.window) is the state's throughout
+        term = self.window_log_term(state.position, observation)
+        target = (tempering, log_prior or self.prior.log_prob, term)
         jumped = jnp.asarray(False)
         if jump:
             state, jumped, bases, gram = self._kind_jump(k_jump, state, bases, gram, observation, target)
         state, colour_ok = self._colour_move(k_colour, state, bases, gram, observation, target)
         state, weights_ok = self._weights_move(k_weights, state, bases, gram, observation, target)
-        loglik = (score(observation, self._image_from_bases(bases, state.position)[None], self.config,
-                        self.channels)[0] + self.window_log_term(state.position, observation))
+        loglik = score(observation, self._image_from_bases(bases, state.position)[None], self.config,
+                       self.channels)[0] + term
         return state, colour_ok & weights_ok, loglik, jumped
 
     def _gram(self, bases, observation, tempering):
@@ -557,15 +559,15 @@ class PosteriorCore:
 
     def _independence_mh(self, key, state, new_position, bases, log_q_ratio, observation, target):
         """Accept or reject an independence proposal with the exact (tempered) log joint, the image
-        computed from the bases."""
+        computed from the bases; ``target`` is (tempering, log prior, the window's term of the pose, which
+        a material move keeps)."""
         import jax
         import jax.numpy as jnp
 
-        tempering, log_prior = target
+        tempering, log_prior, term = target
         image = self._image_from_bases(bases, new_position)
-        new_logdensity = (log_prior(new_position) + tempering * (
-            score(observation, image[None], self.config, self.channels)[0] + self.window_log_term(new_position,
-                                                                                                 observation)))
+        new_logdensity = (log_prior(new_position)
+                          + tempering * (score(observation, image[None], self.config, self.channels)[0] + term))
         accept = jnp.log(jax.random.uniform(key)) < new_logdensity - state.logdensity + log_q_ratio
         return (type(state)(jnp.where(accept, new_position, state.position),
                             jnp.where(accept, new_logdensity, state.logdensity)), accept)
