@@ -87,7 +87,8 @@ EMPTY_SCALE = 1e-5
 
 @functools.lru_cache(maxsize=4)
 def _log_likelihood(core) -> Callable:
-    """One particle's image score (the window's term left out: the empty floor has no object to place), jitted once per core (run eagerly, op by op, the JAX tracer's
+    """One particle's image score (the window's term left out: the empty floor has no object to place),
+    jitted once per core (run eagerly, op by op, the JAX tracer's
     render took 0.9 of a GPU posterior's 1.3 s)."""
     import jax
 

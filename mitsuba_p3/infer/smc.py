@@ -78,6 +78,7 @@ from .coarse import coarse_view
 from .hypotheses import Hypotheses, footprint_start, hypotheses_of, initial_particles
 from .smc_moves import SYMMETRY_MOVES, mover
 from .smc_moves import kernels as make_kernels
+from .window import OUTSIDE_WINDOW
 
 
 # Settings whose default changed after they were added, at the value they had before: a record (an
@@ -313,8 +314,6 @@ def _rounds(core, observation, image, space: Hypotheses, config: SMCConfig, rng,
 
 def outside_window(config: SMCConfig) -> float:
     """The log likelihood of a scene whose object lies outside the scoring window, under ``config``."""
-    from .window import OUTSIDE_WINDOW
-
     return OUTSIDE_WINDOW if config.inside_window else 0.0
 
 
