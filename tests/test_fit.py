@@ -421,6 +421,81 @@ def test_spectral_form_discounts_smooth_mismatch_and_keeps_edges():
             assert edge_cost == pytest.approx(blob_cost, rel=1e-3)
 
 
+def test_shading_fields_density_is_the_marginal_gaussian_and_its_fit_recovers_the_scales():
+    """The shading fields' log likelihood (:mod:`mitsuba_p3.fit.fields`) equals the multivariate normal
+    density with covariance sigma^2 I + B T B' built column by column (numpy and JAX), and maximum
+    marginal likelihood on residuals drawn from that model recovers sigma and the taus."""
+    import jax.numpy as jnp
+    from scipy.stats import multivariate_normal
+
+    from mitsuba_p3.fit.fields import FieldsNoise, field_log_likelihood, fit_fields, monomials
+
+    rng = np.random.default_rng(5)
+    size = (5, 6)
+    basis = monomials(*size, 1)
+    masks = np.zeros((2,) + size)
+    masks[0, 1:3, 1:4], masks[1, 3:5, 2:5] = 1, 1
+    variances = np.array([[0.04, 0.01, 0.02], [0.03, 0.005, 0.001]])
+    design = np.concatenate([(m[..., None] * basis).reshape(-1, 3) for m in masks], axis=1)
+    covariance = 0.1 ** 2 * np.eye(30) + design @ np.diag(variances.reshape(-1)) @ design.T
+    residual = rng.normal(0, 0.1, size + (3,))
+    exact = sum(multivariate_normal(np.zeros(30), covariance).logpdf(residual[..., c].reshape(-1)) for c in range(3))
+    assert field_log_likelihood(residual, masks, 0.1, variances, basis) == pytest.approx(exact, rel=1e-10)
+    ours = field_log_likelihood(jnp.asarray(residual[None], jnp.float32), jnp.asarray(masks[None]), 0.1, variances,
+                                basis, xp=jnp)
+    assert float(ours[0]) == pytest.approx(exact, rel=1e-5)
+    # residuals drawn from the model: a constant and a tilt on an object, a constant on its shadow
+    size, count = (40, 48), 120            # (the correlation area needs windows well above its 12-pixel lags)
+    truth = FieldsNoise(0.02, (0.1, 0.05, 0.03, 0.01), 1, 1.0, size)
+    basis = monomials(*size, 1)
+    masks = np.zeros((count, 2) + size)
+    for n in range(count):
+        top, left = rng.integers(8, 20, 2)
+        masks[n, 0, top:top + 10, left:left + 12] = 1
+        masks[n, 1, top + 10:top + 13, left:left + 14] = 1
+    weights = rng.normal(size=(count, 2, 3, 3)) * np.sqrt(truth.variances())[None, :, :, None]
+    residuals = (np.einsum("nrhw,hwk,nrkc->nhwc", masks, basis, weights)
+                 + truth.sigma * rng.normal(size=(count,) + size + (3,)))
+    fitted, figures = fit_fields(residuals, masks, degree=1)
+    assert fitted.sigma == pytest.approx(truth.sigma, rel=0.02)
+    # (the shadow's tilt, 0.01 over a 3-pixel strip beside noise of 0.02, is the least determined)
+    np.testing.assert_allclose(fitted.taus[:3], truth.taus[:3], rtol=0.15)
+    assert fitted.taus[3] == pytest.approx(truth.taus[3], rel=0.5)
+    # what the fields explain is gone: the residual left is white noise
+    assert figures["correlation_area_window"] > 3 and figures["correlation_area_after_fields"] < 1.3
+
+
+def test_shading_fields_forgive_a_wrong_shade_and_keep_the_outline():
+    """Under the shading fields' form a render whose object is a shade off costs little, while the same
+    object one pixel off (or absent) costs what the independent Gaussian charges, or more: the fields
+    live on the render's own object, so they can change its shading but not its outline."""
+    import jax.numpy as jnp
+
+    from mitsuba_p3.infer.likelihood import LikelihoodConfig, observe, score
+
+    size = (24, 30)
+    empty = np.full(size + (3,), 0.4, np.float32)
+    objects = np.zeros((4,) + size, bool)
+    objects[0, 8:16, 10:18] = objects[1, 8:16, 10:18] = objects[2, 8:16, 11:19] = True   # [3]: absent
+    observed = empty.copy()
+    observed[objects[0]] = 0.7
+    renders = np.stack([empty.copy() for _ in range(4)])
+    renders[0][objects[0]] = 0.7                                   # the truth
+    renders[1][objects[1]] = 0.7 - 0.08                            # a shade off
+    renders[2][objects[2]] = 0.7                                   # one pixel to the right
+    fields = LikelihoodConfig("p3", sigma=0.02, fields=(0.1, 0.05, 0.05, 0.05))
+    white = LikelihoodConfig("p3", sigma=0.02)
+    with_fields = np.asarray(score(observe(observed, fields, empty=empty), jnp.asarray(renders), fields,
+                                   objects=jnp.asarray(objects)))
+    independent = np.asarray(score(observe(observed, white), jnp.asarray(renders), white))
+    drop, drop_white = with_fields[0] - with_fields, independent[0] - independent
+    assert drop[1] < 0.05 * drop_white[1]                          # the shade: nearly free
+    assert drop[2] > 0.5 * drop_white[2] > 0 and drop[3] > 0.5 * drop_white[3] > 0
+    assert drop[2] > 10 * drop[1] and drop[3] > 10 * drop[1]
+    with pytest.raises(MitsubaP3Error, match="object pixels"):
+        score(observe(observed, fields, empty=empty), jnp.asarray(renders), fields)
+
+
 def test_sandwich_power_divides_an_outline_by_a_length_and_a_patch_by_an_area():
     """The composite likelihood's power along an image direction g: 1 for white residuals; for
     correlated ones about 1 / (correlation area) when g is a broad patch, and several times more when

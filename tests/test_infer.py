@@ -623,6 +623,70 @@ def test_a_windowed_likelihood_scores_the_window_around_the_object(fitted, rende
     assert core.window_for(image, (12, 12)) is None
 
 
+def test_the_shading_fields_likelihood_traces_the_object_it_scores(fitted):
+    """Under ``--noise fields`` the core traces each hypothesis's object pixels in the scored window
+    (the same pixels the Mitsuba render shades as object, for every class), and its log likelihood, by
+    the walk's path and by the material move's bases, is the fields' density of the render's residual
+    with those pixels as the object's region; the fit wrote the form (sigma, four scales, a power)."""
+    import jax
+    import jax.numpy as jnp
+    from blackjax.mcmc.random_walk import RWState
+
+    from mitsuba_p3.fit.fields import FieldsNoise
+    from mitsuba_p3.infer.likelihood import fields_log_likelihood
+    from mitsuba_p3.infer.model import PosteriorCore
+    from mitsuba_p3.infer.posterior import default_likelihood
+    from mitsuba_p3.render import make_renderer
+
+    form = FieldsNoise.from_dict(fitted.noise.fields)
+    assert len(form.taus) == 4 and 0 < form.power <= 1 and form.sigma > 0
+    likelihood = default_likelihood(fitted, "p3", noise="fields")
+    assert likelihood.fields == form.taus and likelihood.power == form.power
+    core = PosteriorCore(fitted, likelihood, "mitsuba", 120, 160)
+    image = make_renderer_image(fitted)
+    window = core.window_for(image, (48, 64))
+    top, left, height, width = window
+    observation = core.observe(image, window)
+    renderer = make_renderer(fitted.scene(), "mitsuba", height=120, width=160, shadows=True)
+    unconstrain = lambda x: jnp.asarray(fitted.prior.unconstrain(  # noqa: E731
+        {k: np.asarray(v)[None] for k, v in x.items() if k != "kappa"})[0], jnp.float32)
+    crop = (slice(top, top + height), slice(left, left + width))
+    for kappa in range(3):
+        probabilities = np.full(3, 0.001)
+        probabilities[kappa] = 0.998
+        z = unconstrain({**TRUTH, "class_probabilities": probabilities})
+        params = {**TRUTH, "kappa": np.int32(kappa)}
+        bases = renderer.render_bases(params)[crop]
+        shaded = (np.abs(bases[..., 3, :]).sum(-1) == 0) & (np.abs(bases[..., :3, :]).sum((-2, -1)) > 0)
+        objects = np.asarray(core.objects(z, observation))
+        assert objects.sum() > 20 and np.array_equal(objects, shaded)
+        render = jnp.asarray(renderer.render(params)[crop][None])
+        expected = float(fields_log_likelihood(observation["image"], render, objects[None], observation["empty"],
+                                               likelihood)[0])
+        assert float(core.log_likelihood(z, observation)) == pytest.approx(expected, rel=1e-5)
+        _, _, loglik, _ = core.scored_material_move(jax.random.PRNGKey(0), RWState(z, core.logdensity(z, observation)),
+                                                    observation)
+        assert np.isfinite(float(loglik))
+    # the material update's Gram matrices are the fields' precision: two colours at one pose differ in the
+    # likelihood by what the quadratic form of the bases says (no pixel clipped)
+    from mitsuba_p3.infer.model import contract_params
+
+    bases = core._image(z, observation, bases=True)
+    gram = np.asarray(core._gram(bases, observation, 1.0, z))
+    p = contract_params(core.prior, z)
+    values = []
+    for shade in (1.0, 0.8):
+        colour = p["colour"] * shade
+        coefficients = np.stack([np.array([colour[c] * p["ambient"], colour[c] * p["diffuse"], p["specular"], -1.0])
+                                 for c in range(3)])
+        image = (colour * (p["ambient"] * bases[..., 0, :] + p["diffuse"] * bases[..., 1, :])
+                 + p["specular"] * bases[..., 2, :] + bases[..., 3, :])
+        assert float(jnp.max(image)) < 1.0
+        values.append((float(core._score(z, image, observation)),
+                       -0.5 * sum(coefficients[c] @ gram[c] @ coefficients[c] for c in range(3))))
+    assert values[0][0] - values[1][0] == pytest.approx(values[0][1] - values[1][1], rel=1e-3, abs=1e-3)
+
+
 def test_a_scene_whose_object_leaves_the_window_has_likelihood_zero(fitted):
     """The window holds the object: the truth scores as the window's pixels say, the same scene moved
     off the window has log likelihood OUTSIDE_WINDOW (by the likelihood, the material move and the

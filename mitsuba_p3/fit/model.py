@@ -192,6 +192,23 @@ def render_train_split(model: FittedModel, dataset: Dataset, shadows: bool | Non
     return observations, renders
 
 
+def silhouettes(model: FittedModel, dataset: Dataset) -> np.ndarray:
+    """(N, H, W) the pixels each train image's object covers at its true geometry (the shading fields'
+    object region, :mod:`.fields`), traced by :func:`~mitsuba_p3.render.jax_tracer.silhouette`."""
+    import jax
+    import jax.numpy as jnp
+
+    from ..render.jax_tracer import camera_rays, silhouette
+    from .scene_opt import geometry_of
+
+    height, width = dataset.resolution
+    scene = model.scene()
+    origin, rays = (jnp.asarray(v) for v in camera_rays(scene.camera, height, width))
+    trace = jax.jit(lambda p: silhouette(p, origin, rays, float(scene.floor.half_size)))
+    return np.stack([np.asarray(trace({k: jnp.asarray(v) for k, v in geometry_of(shot).items()})).reshape(height, width)
+                     for shot in dataset.split("train")])
+
+
 def shot_params(shot, materials: dict) -> dict[str, np.ndarray]:
     """The contract's object parameters of a labelled shot: its true geometry and the fitted material
     of its colour+material pair (``materials``: :attr:`FittedModel.materials`)."""
@@ -303,7 +320,8 @@ def _run_stages(root: Path, dataset: Dataset, stages: Sequence[str], scene_confi
         observations, renders = render_train_split(model, dataset, shadows=True)
         noise, figures, spectra = fit_noise(observations, renders,
                                             empty_render(model, *dataset.resolution, shadows=True), shadows=True,
-                                            directions=pose_directions(model, dataset))
+                                            directions=pose_directions(model, dataset),
+                                            objects=silhouettes(model, dataset))
         save_spectra(root / SPECTRUM_FILE, spectra)
         atomic_json(root / "noise.json", {"model": noise.as_dict(), "figures": figures})
         _record(root, dataset, "noise", {"model": noise.as_dict(), **figures,

@@ -123,6 +123,7 @@ class NoiseModel:
     spectral_power: float | None = None   # the spectral form's power (None: no spectrum fitted)
     spectral_shrink: float | None = None  # lambda: the spectrum is P + lambda mean(P) (0: the pure field)
     pose_power: float | None = None       # the sandwich power along the pose (None: not fitted)
+    fields: dict | None = None            # the shading fields' form (:class:`.fields.FieldsNoise` as a dict)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -198,12 +199,14 @@ def correlation_area(residuals: np.ndarray, max_lag: int = 12) -> float:
 
 def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, shadows: bool,
               windows: list[tuple[int, int]] | None = None, spectral_shrink: float = SPECTRAL_SHRINK,
-              directions: np.ndarray | None = None) -> tuple[NoiseModel, dict, dict]:
+              directions: np.ndarray | None = None, objects: np.ndarray | None = None
+              ) -> tuple[NoiseModel, dict, dict]:
     """The noise model of (observed, rendered) image pairs (N, H, W, 3), given the empty-floor render
     (H, W, 3), figures about the fit, and the spectral form's spectra per window size (``windows``,
     default :data:`SCORING_WINDOW`, and the whole image); ``shadows`` says whether the renders had hard
     shadows; ``directions`` (N, P, H, W, 3), the renders' changes along the pose, give the sandwich
-    power (:func:`pose_power`)."""
+    power (:func:`pose_power`); ``objects`` (N, H, W), the pixels each render's object covers, give the
+    shading fields' form (:mod:`.fields`), fitted on the windows the sampler scores."""
     residuals = np.asarray(observations, np.float64) - np.asarray(renders, np.float64)
     regions = object_pixels(np.asarray(renders), np.asarray(empty)).astype(int)     # 1: object or its shadow
     sigma, outlier, iterations = fit_mixture(residuals, regions)
@@ -216,6 +219,15 @@ def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, 
                        footprint=float(np.quantile(floor, 0.999)) if floor.size else None,
                        spectral_power=spectral_power, spectral_shrink=spectral_shrink,
                        pose_power=None if directions is None else pose_power(residuals, directions))
+    fields_figures = None
+    if objects is not None:
+        from dataclasses import replace
+
+        from .fields import fit_fields
+
+        fields, fields_figures = fit_fields(*field_windows(residuals, regions.astype(bool), np.asarray(objects, bool),
+                                                           sizes[0]))
+        model = replace(model, fields=fields.as_dict())
     figures = {"pixels": int(np.prod(residuals.shape[:-1])), "object_pixels": int(regions.sum()),
                "residual_rms": model.gaussian_sigma,
                "em_iterations": iterations, "correlation_area_pixels": area,
@@ -223,8 +235,24 @@ def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, 
                "effective_sigma_mixture": sigma / np.sqrt(model.power), "spectral": spectral,
                "pose_power": model.pose_power,
                "effective_sigma_pose": None if model.pose_power is None else
-               model.gaussian_sigma / np.sqrt(model.pose_power)}
+               model.gaussian_sigma / np.sqrt(model.pose_power), "fields": fields_figures}
     return model, figures, spectra
+
+
+def field_windows(residuals: np.ndarray, regions: np.ndarray, objects: np.ndarray,
+                  size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The shading fields' training data: residual windows (N, h, w, 3) of ``size`` centred on each image's
+    object and shadow (``regions``, (N, H, W)), and their region masks (N, 2, h, w): the object's pixels
+    (``objects``) and the rest of the footprint (its shadow)."""
+    height, width = residuals.shape[1:3]
+    size = (min(size[0], height), min(size[1], width))
+    windows, masks = [], []
+    for n in range(len(residuals)):
+        top, left = window_around(regions[n], size)
+        crop = (slice(top, top + size[0]), slice(left, left + size[1]))
+        windows.append(residuals[n][crop])
+        masks.append(np.stack([objects[n][crop], regions[n][crop] & ~objects[n][crop]]))
+    return np.stack(windows), np.stack(masks).astype(np.float64)
 
 
 def window_around(mask: np.ndarray, size: tuple[int, int]) -> tuple[int, int]:

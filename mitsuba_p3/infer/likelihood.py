@@ -20,6 +20,13 @@ stationary field also discounts a small object's whole appearance, so an object 
 out of the window can cost less than one a few millimetres off: not a default
 (docs/notebook.md, "A likelihood that keeps the outline").
 
+With ``fields`` (``--noise fields``) the mismatch is tied to what the hypothesis renders: smooth
+shading fields on its own object's pixels and on the floor its shadow changes, integrated out
+(:mod:`mitsuba_p3.fit.fields`), so a wrong shade costs little while the outline and the object's
+presence keep their evidence; beta is the power of the correlation the fields leave. This form
+needs each render's object pixels, which :class:`~mitsuba_p3.infer.model.PosteriorCore` traces from
+the pose (``objects`` of :func:`score`).
+
 With eps = 0 and beta = 1 the first form is the paper's likelihood, sigma = 1.0 (0.35 on its
 dark set), a sum of truncated normals over every pixel and channel: the default
 (``--noise paper``). ``--noise fitted`` uses the numbers the fit measured on the
@@ -42,9 +49,10 @@ from ..fit.features import Channel, neural_distance, selected_features
 LIKELIHOODS = ("p3", "np3")
 # fitted: the Gaussian noise fitted to the train residuals (sigma, power 1 / correlation area); sandwich:
 # the same Gaussian at the composite likelihood's power along the pose; robust: the fitted inlier/outlier
-# mixture; spectral: the correlated Gaussian field fitted to the train residual windows; paper: sigma 1
+# mixture; spectral: the correlated Gaussian field fitted to the train residual windows; fields: the shading
+# fields on the hypothesis's own object and shadow, marginalised (:mod:`mitsuba_p3.fit.fields`); paper: sigma 1
 # (:mod:`mitsuba_p3.fit.noise` says why fitted is Gaussian, and what each power is)
-NOISES = ("fitted", "sandwich", "robust", "spectral", "paper")
+NOISES = ("fitted", "sandwich", "robust", "spectral", "fields", "paper")
 # the noise model infer, evaluate and reproduce use unless told otherwise (chosen on train classes:
 # docs/notebook.md, "A likelihood that keeps the outline")
 DEFAULT_NOISE = "fitted"
@@ -62,6 +70,8 @@ class LikelihoodConfig:
     shadows: bool = False         # hard shadows in the likelihood's renders (the paper: off)
     neural_weight: float = 0.05
     spectral: bool = False        # the correlated form: whiten by the fitted spectrum (sigma only reported)
+    fields: tuple | None = None   # the shading fields' taus (region-major, degree 0..fields_degree); None: none
+    fields_degree: int = 1
 
     def __post_init__(self):
         from ..errors import ConfigError
@@ -81,6 +91,15 @@ class LikelihoodConfig:
             raise ConfigError(f"the neural weight must be >= 0; got {self.neural_weight}")
         if self.spectral and (self.outlier > 0 or self.object_outlier is not None):
             raise ConfigError("the spectral noise form has no outlier weights")
+        if self.fields is not None:
+            from ..fit.fields import REGIONS
+
+            if self.spectral or self.outlier > 0 or self.object_outlier is not None:
+                raise ConfigError("the shading fields' form has no outlier weights and no spectrum")
+            if (len(self.fields) != len(REGIONS) * (self.fields_degree + 1)
+                    or not all(np.isfinite(t) and t > 0 for t in self.fields)):
+                raise ConfigError(f"the shading fields need {len(REGIONS) * (self.fields_degree + 1)} positive "
+                                  f"scales (regions x degrees 0..{self.fields_degree}); got {self.fields}")
 
 
 def whiten(images, observation: dict, config: LikelihoodConfig):
@@ -134,11 +153,12 @@ def observe(observed: np.ndarray, config: LikelihoodConfig, channels: list[Chann
 
         raise MitsubaP3Error("the np3 likelihood needs the fitted model's selected VGG16 channels")
     observation = {"image": np.asarray(observed, np.float32)}
-    if config.object_outlier is not None:
+    if config.object_outlier is not None or config.fields is not None:
         if empty is None:
             from ..errors import MitsubaP3Error
 
-            raise MitsubaP3Error("a likelihood with an object outlier weight needs the empty-floor render")
+            raise MitsubaP3Error("a likelihood with an object outlier weight or shading fields needs the "
+                                 "empty-floor render")
         observation["empty"] = np.asarray(empty, np.float32)
     if config.spectral:
         size = tuple(observation["image"].shape[:2])
@@ -160,11 +180,38 @@ def observe(observed: np.ndarray, config: LikelihoodConfig, channels: list[Chann
     return observation
 
 
-def score(observation: dict, renders, config: LikelihoodConfig, channels: list[Channel] | None = None):
+def fields_log_likelihood(observed, renders, objects, empty, config: LikelihoodConfig):
+    """The shading fields' log likelihood of renders (B, h, w, 3) whose object covers ``objects`` (B, h, w)
+    -> (B,): the object's region is its silhouette, the shadow's the floor the render changes from
+    ``empty`` elsewhere (:mod:`mitsuba_p3.fit.fields`)."""
+    import jax.numpy as jnp
+
+    from ..fit.fields import FieldsNoise, field_log_likelihood, monomials
+    from ..fit.noise import object_pixels
+
+    objects = jnp.asarray(objects, bool)
+    shadow = object_pixels(renders, jnp.asarray(empty), xp=jnp) & ~objects
+    masks = jnp.stack([objects, shadow], axis=-3)
+    height, width = renders.shape[-3:-1]
+    noise = FieldsNoise(config.sigma, config.fields, config.fields_degree, config.power, (height, width))
+    residual = jnp.asarray(observed)[None] - renders
+    return config.power * field_log_likelihood(residual, masks, config.sigma, noise.variances(),
+                                               monomials(height, width, config.fields_degree), xp=jnp)
+
+
+def score(observation: dict, renders, config: LikelihoodConfig, channels: list[Channel] | None = None,
+          objects=None):
     """(B, H, W, 3) renders -> (B,) log-likelihoods of ``observation`` (JAX). An observation's own
     ``neural_weight`` entry, a number the compiled sampler takes as an argument, overrides the
-    config's: the SMC's bridge from P3 to NP3 tempers the neural term in by it."""
-    if config.spectral:
+    config's: the SMC's bridge from P3 to NP3 tempers the neural term in by it. The shading fields'
+    form also needs the pixels each render's object covers, ``objects`` (B, H, W)."""
+    if config.fields is not None:
+        if objects is None:
+            from ..errors import ConfigError
+
+            raise ConfigError("the shading fields' likelihood needs the renders' object pixels")
+        log_lik = fields_log_likelihood(observation["image"], renders, objects, observation["empty"], config)
+    elif config.spectral:
         log_lik = spectral_log_likelihood(observation["image"], renders, observation, config)
     else:
         log_lik = colour_log_likelihood(observation["image"], renders, config, observation.get("empty"))

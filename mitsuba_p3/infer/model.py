@@ -232,6 +232,33 @@ class PosteriorCore:
         (:func:`~mitsuba_p3.infer.window.window_log_term`)."""
         return window_log_term(self, z, observation)
 
+    def objects(self, z, observation):
+        """(h, w) the pixels of the scored image (the observation's window, or the whole image) that z's
+        object covers, traced from its pose without shading (JAX; vmap for many); None unless the
+        likelihood needs them (the shading fields' form)."""
+        if self.config.fields is None:
+            return None
+        import jax
+        import jax.numpy as jnp
+
+        from ..render.jax_tracer import silhouette
+
+        height, width = np.shape(observation["image"])[:2]
+        origin, rays = self.camera_rays
+        rays = jnp.asarray(rays).reshape(self.renderer.height, self.renderer.width, 3)
+        if "window" in observation:
+            top, left = observation["window"][0], observation["window"][1]
+            rays = jax.lax.dynamic_slice(rays, (top, left, 0), (height, width, 3))
+        params = contract_params(self.prior, z)
+        covered = silhouette(params, jnp.asarray(origin), rays.reshape(-1, 3), self.renderer.floor_half_size)
+        return covered.reshape(height, width)
+
+    def _score(self, z, image, observation):
+        """The score of one render of z (h, w, 3) (:func:`~mitsuba_p3.infer.likelihood.score`)."""
+        objects = self.objects(z, observation)
+        return score(observation, image[None], self.config, self.channels,
+                     None if objects is None else objects[None])[0]
+
     def _image(self, z, observation, bases: bool = False):
         """The render (or material bases) of z that ``observation`` scores: its window, or the whole image."""
         params = contract_params(self.prior, z)
@@ -263,14 +290,14 @@ class PosteriorCore:
 
     def image_log_likelihood(self, z, observation):
         """The score of z's render alone, without the window's term (the empty floor's evidence needs it)."""
-        return score(observation, self._image(z, observation)[None], self.config, self.channels)[0]
+        return self._score(z, self._image(z, observation), observation)
 
     def log_likelihood_parts(self, z, observation):
         """(colour, whole) log likelihood of one position z from one render (JAX; vmap for many): the
         colour term alone, and with the neural term at the observation's weight (NP3's bridge)."""
-        image, term = self._image(z, observation)[None], self.window_log_term(z, observation)
-        return (score({**observation, "neural_weight": 0.0}, image, self.config, self.channels)[0] + term,
-                score(observation, image, self.config, self.channels)[0] + term)
+        image, term = self._image(z, observation), self.window_log_term(z, observation)
+        return (self._score(z, image, {**observation, "neural_weight": 0.0}) + term,
+                self._score(z, image, observation) + term)
 
     def logdensity(self, z, observation):
         """log p(z) + log p(I | z) of one position z (15,) (JAX; vmap for many)."""
@@ -395,7 +422,7 @@ class PosteriorCore:
 
         k_colour, k_weights, k_jump = jax.random.split(key, 3)
         bases = self._image(state.position, observation, bases=True)
-        gram = self._gram(bases, observation, tempering)
+        gram = self._gram(bases, observation, tempering, state.position)
         # the material moves leave the pose, so the window's term (mitsuba_p3.infer.window) is the state's throughout
         term = self.window_log_term(state.position, observation)
         target = (tempering, log_prior or self.prior.log_prob, term)
@@ -404,11 +431,10 @@ class PosteriorCore:
             state, jumped, bases, gram = self._kind_jump(k_jump, state, bases, gram, observation, target)
         state, colour_ok = self._colour_move(k_colour, state, bases, gram, observation, target)
         state, weights_ok = self._weights_move(k_weights, state, bases, gram, observation, target)
-        loglik = score(observation, self._image_from_bases(bases, state.position)[None], self.config,
-                       self.channels)[0] + term
+        loglik = self._score(state.position, self._image_from_bases(bases, state.position), observation) + term
         return state, colour_ok & weights_ok, loglik, jumped
 
-    def _gram(self, bases, observation, tempering):
+    def _gram(self, bases, observation, tempering, z):
         """(3, 4, 4) per channel, the tempered precision-weighted inner products of the bases A, D, S and
         the residual r = I_obs - F: both material conditionals need only these."""
         import jax.numpy as jnp
@@ -420,10 +446,36 @@ class PosteriorCore:
             # the spectral form's quadratic is that of whitened images (linear), at precision power
             vectors = jnp.moveaxis(whiten(jnp.moveaxis(vectors, -2, 0), observation, self.config), 0, -2)
             precision = tempering * self.config.power
-        vectors = vectors.reshape(-1, 12)                                           # (pixels, 4 x 3)
-        full = (vectors.T @ vectors).reshape(4, 3, 4, 3)                            # one matmul: XLA's fast path
+        flat = vectors.reshape(-1, 12)                                              # (pixels, 4 x 3)
+        full = (flat.T @ flat).reshape(4, 3, 4, 3)                                  # one matmul: XLA's fast path
         # the Gaussian part of the likelihood (outliers are left to the MH test)
-        return jnp.einsum("icjc->cij", full) * precision
+        gram = jnp.einsum("icjc->cij", full)
+        if self.config.fields is not None:
+            gram = gram - self._fields_correction(vectors, bases, observation, z)
+        return gram * precision
+
+    def _fields_correction(self, vectors, bases, observation, z):
+        """(3, 4, 4) what the shading fields take off the bases' inner products: under covariance
+        sigma^2 I + B T B' the precision is (I - B (G + sigma^2 T^-1)^-1 B') / sigma^2, so x'Qy is the white
+        x'y / sigma^2 less (B'x)' (G + sigma^2 T^-1)^-1 (B'y) / sigma^2 (:mod:`mitsuba_p3.fit.fields`). The
+        regions are the pose's: its object's pixels and the floor its shadow changes (the materials move
+        neither)."""
+        import jax.numpy as jnp
+
+        from ..fit.fields import FieldsNoise, field_statistics, monomials
+
+        height, width = vectors.shape[:2]
+        objects = self.objects(z, observation)
+        shadow = jnp.any(jnp.abs(bases[..., 3, :] - observation["empty"]) > 1e-3, axis=-1) & ~objects
+        masks = jnp.stack([objects, shadow])
+        form = FieldsNoise(self.config.sigma, self.config.fields, self.config.fields_degree, self.config.power,
+                           (height, width))
+        _, gram, projected, _ = field_statistics(jnp.moveaxis(vectors, -2, 0), masks,
+                                                 monomials(height, width, form.degree), xp=jnp)   # (4, R, k, 3)
+        k = gram.shape[-1]
+        inner = gram + (self.config.sigma ** 2 / jnp.asarray(form.variances(), gram.dtype))[..., None] * jnp.eye(k)
+        solved = jnp.linalg.solve(inner[None], projected)                                     # (4, R, k, 3)
+        return jnp.einsum("irkc,jrkc->cij", projected, solved)
 
     def _kind_jump(self, key, state, bases, gram, observation, target):
         """The material kind's jump: a new shininess drawn from its prior (a mixture of the fitted
@@ -452,7 +504,7 @@ class PosteriorCore:
         position = state.position
         moved = position.at[s].set((alpha - loc) / std)
         new_bases = self._image(moved, observation, bases=True)
-        new_gram = self._gram(new_bases, observation, target[0])
+        new_gram = self._gram(new_bases, observation, target[0], moved)
         colour = contract_params(self.prior, position)["colour"]
         dims, w_loc, w_std = self._weight_coordinates()
         old, new = self._weights_conditional(gram, colour), self._weights_conditional(new_gram, colour)
@@ -567,7 +619,7 @@ class PosteriorCore:
         tempering, log_prior, term = target
         image = self._image_from_bases(bases, new_position)
         new_logdensity = (log_prior(new_position)
-                          + tempering * (score(observation, image[None], self.config, self.channels)[0] + term))
+                          + tempering * (self._score(new_position, image, observation) + term))
         accept = jnp.log(jax.random.uniform(key)) < new_logdensity - state.logdensity + log_q_ratio
         return (type(state)(jnp.where(accept, new_position, state.position),
                             jnp.where(accept, new_logdensity, state.logdensity)), accept)

@@ -195,7 +195,9 @@ def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | No
       not an area);
     - ``robust``: the same stage's inlier/outlier mixture (sigma, outlier weights, beta, shadows);
     - ``spectral``: the same stage's correlated Gaussian field (the residual windows' power spectrum and
-      the power of what correlation whitening leaves), renders with hard shadows.
+      the power of what correlation whitening leaves), renders with hard shadows;
+    - ``fields``: the same stage's shading fields on the hypothesis's object and shadow, marginalised
+      (:mod:`mitsuba_p3.fit.fields`: sigma, the fields' scales, the power of what they leave), hard shadows.
     """
     from ..errors import ConfigError
 
@@ -218,6 +220,15 @@ def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | No
                               f"mitsuba-p3 fit DATASET --out {fitted.root} --stages noise")
         return LikelihoodConfig(kind=kind, sigma=model.gaussian_sigma, power=model.spectral_power,
                                 shadows=model.shadows, spectral=True)
+    if noise == "fields":
+        if model.fields is None:
+            raise ConfigError(f"{fitted.root} has no shading fields' form; refit its noise stage: "
+                              f"mitsuba-p3 fit DATASET --out {fitted.root} --stages noise")
+        from ..fit.fields import FieldsNoise
+
+        fields = FieldsNoise.from_dict(model.fields)
+        return LikelihoodConfig(kind=kind, sigma=fields.sigma, power=fields.power, shadows=model.shadows,
+                                fields=fields.taus, fields_degree=fields.degree)
     if model.gaussian_sigma is None:
         raise ConfigError(f"{fitted.root}/noise.json predates the Gaussian noise form; refit it with "
                           f"mitsuba-p3 fit DATASET --out {fitted.root} --stages noise")

@@ -217,6 +217,21 @@ def _geometry(intersect, p, origin, directions, floor_half_size: float):
     return hit_obj, hit_floor, point, normal, floor_point
 
 
+def silhouette(p: Mapping[str, jnp.ndarray], origin, directions, floor_half_size: float):
+    """(N,) whether each camera ray (directions (N, 3), from ``origin`` (3,)) sees the object first, for one
+    object (``shift``, ``theta``, ``scale`` and a class index ``kappa`` into :data:`SHAPES`, which may be
+    traced): the object's pixels without shading it. Under ``vmap`` over a traced class every class's
+    intersection is computed and one kept (three cheap ray tests per ray)."""
+    pose = {k: p[k] for k in ("shift", "theta", "scale")}
+    origin, directions = jnp.asarray(origin)[:, None], jnp.asarray(directions).T
+
+    def covered(intersect):
+        return _geometry(intersect, pose, origin, directions, floor_half_size)[0]
+
+    return jax.lax.stop_gradient(jax.lax.switch(
+        jnp.asarray(p["kappa"], jnp.int32), [partial(covered, INTERSECT[shape]) for shape in SHAPES]))
+
+
 def _materialised(fn, predicate):
     """``fn()``, computed once into buffers.
 

@@ -1,0 +1,159 @@
+"""Shading fields: the render's mismatch on the object's own pixels, marginalised.
+
+The Phong model's residuals against a path tracer's images are correlated, and most of
+the correlation is the object's own: a metal mirrors the floor and the sky, a rubber's
+shading is softer than Phong's, a soft shadow's edge is wider than a hard one
+(``experiments/probe_residuals.py``). The fitted Gaussian answers with one power
+beta = 1 / A for the whole window (A the residuals' correlation area), which divides
+the outline's evidence as much as the shading's; a stationary field (the spectral
+form) discounts any blob anywhere, so an absent object borrows the blobs a metal
+leaves. This form ties the correlation to what the hypothesis renders.
+
+**The model.** Per colour channel the residual window r (P pixels) is
+
+    r = B w + e,   w ~ N(0, diag(tau^2)),   e ~ N(0, sigma^2 I),
+
+where B's columns are low-order polynomials of the pixel coordinates (constant and
+linear by default, scaled to [-1, 1] over the window), each multiplied by a *region*
+mask: the pixels the hypothesis renders as object, and the floor its shadow darkens.
+Each region and polynomial degree has its own tau. Integrating w out (Woodbury),
+
+    log p(r) = -1/2 (r'r - sum_g b_g' (G_g + sigma^2 T_g^-1)^-1 b_g) / sigma^2
+               - 1/2 sum_g log det(I + T_g G_g / sigma^2) - P/2 log(2 pi sigma^2),
+
+with G_g = B_g'B_g and b_g = B_g'r for region g (the regions do not overlap, so the
+regions' blocks are independent). A field changes the object's shading smoothly; it
+cannot move the outline (it lives on the rendered mask) and an absent object has no
+mask to carry one, so the outline and the object's presence keep their evidence while
+a wrong shade costs little. The log-determinant is the fields' Occam factor: a larger
+mask has more freedom and pays for it.
+
+**The fit.** sigma and the taus maximise the marginal likelihood of the train split's
+residual windows at the true geometry (:func:`fit_fields`; scipy's L-BFGS over their
+logs). Whatever correlation the fields leave (the floor's path-tracing noise, the
+outline's own mismatch) is handled as before, by a power: beta = 1 / (correlation area
+of the residuals left after the fields' posterior mean), the composite likelihood's
+magnitude adjustment for the remaining correlation.
+
+Everything here takes an array module ``xp`` (numpy for the fit, jax.numpy for the
+sampler), and batches over leading axes.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+REGIONS = ("object", "shadow")
+
+
+@dataclass(frozen=True)
+class FieldsNoise:
+    """A fitted shading-fields noise model (module docstring)."""
+
+    sigma: float               # the white part's scale per channel
+    taus: tuple                # per region, per polynomial degree 0..degree (region-major)
+    degree: int                # the polynomials' highest degree
+    power: float               # 1 / the correlation area the fields leave
+    window: tuple              # (height, width) of the windows it was fitted on
+
+    def as_dict(self) -> dict:
+        return {**asdict(self), "taus": list(self.taus), "window": list(self.window)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FieldsNoise":
+        return cls(sigma=float(d["sigma"]), taus=tuple(float(t) for t in d["taus"]), degree=int(d["degree"]),
+                   power=float(d["power"]), window=tuple(int(v) for v in d["window"]))
+
+    def variances(self) -> np.ndarray:
+        """(regions, k) tau^2 of every basis column, k = the number of monomials."""
+        per = np.array([total for total in range(self.degree + 1) for _ in range(total + 1)])
+        taus = np.asarray(self.taus, np.float64).reshape(len(REGIONS), self.degree + 1)
+        return taus[:, per] ** 2
+
+
+def monomials(height: int, width: int, degree: int) -> np.ndarray:
+    """(h, w, k) the monomials u^i v^j, i + j <= ``degree``, of pixel coordinates scaled to [-1, 1] across
+    the window (u along columns, v along rows), ordered by total degree."""
+    v, u = np.meshgrid(np.linspace(-1.0, 1.0, height), np.linspace(-1.0, 1.0, width), indexing="ij")
+    return np.stack([u ** i * v ** (total - i) for total in range(degree + 1) for i in range(total + 1)], axis=-1)
+
+
+def field_statistics(residual, masks, basis, xp=np) -> tuple:
+    """What the density needs of residual windows (..., h, w, 3) and their region masks (..., R, h, w):
+    (r'r (...,), G (..., R, k, k), b = B'r (..., R, k, 3), the number of values per window). The fit
+    computes them once; the density is then small linear algebra per window."""
+    residual = xp.asarray(residual)
+    masks = xp.asarray(masks, residual.dtype)
+    basis = xp.asarray(basis, residual.dtype)
+    height, width, k = basis.shape
+    pixels = masks.reshape(masks.shape[:-2] + (height * width,))                      # (..., R, P)
+    products = (basis[..., :, None] * basis[..., None, :]).reshape(height * width, k * k)
+    gram = (pixels @ products).reshape(pixels.shape[:-1] + (k, k))
+    flat = residual.reshape(residual.shape[:-3] + (height * width, 3))
+    weighted = basis.reshape(height * width, k)[None, :, :] * pixels[..., :, None]        # (..., R, P, k)
+    projected = xp.swapaxes(weighted, -1, -2) @ flat[..., None, :, :]                  # (..., R, k, 3)
+    return xp.sum(residual * residual, axis=(-3, -2, -1)), gram, projected, height * width * 3
+
+
+def marginal_log_likelihood(statistics: tuple, sigma: float, variances, xp=np, solved: bool = False):
+    """log p(r) (...,) from :func:`field_statistics` under ``sigma`` and the fields' ``variances`` (R, k);
+    with ``solved``, also the fields' posterior means (..., R, k, 3)."""
+    squares, gram, projected, count = statistics
+    k = gram.shape[-1]
+    eye = xp.eye(k, dtype=gram.dtype)
+    variances = xp.asarray(variances, gram.dtype)
+    means = xp.linalg.solve(gram + (sigma ** 2 / variances)[..., None] * eye, projected)  # (..., R, k, 3)
+    quadratic = squares - xp.sum(projected * means, axis=(-3, -2, -1))
+    _, logdet = xp.linalg.slogdet(eye + variances[..., :, None] * gram / sigma ** 2)      # (..., R)
+    value = (-0.5 * quadratic / sigma ** 2 - 0.5 * 3 * xp.sum(logdet, axis=-1)
+             - 0.5 * count * np.log(2 * np.pi * sigma ** 2))
+    return (value, means) if solved else value
+
+
+def field_log_likelihood(residual, masks, sigma: float, variances, basis, xp=np, left: bool = False):
+    """log p(r) of residual windows (..., h, w, 3) whose region masks are ``masks`` (..., R, h, w) under
+    the fields of ``variances`` (R, k) tau^2 and ``basis`` (h, w, k) (module docstring) -> (...,).
+    With ``left``, also the residual the fields' posterior mean leaves (..., h, w, 3)."""
+    statistics = field_statistics(residual, masks, basis, xp)
+    value, means = marginal_log_likelihood(statistics, sigma, variances, xp, solved=True)
+    if not left:
+        return value
+    mean_field = xp.einsum("...rhw,hwk,...rkc->...hwc", xp.asarray(masks, means.dtype), xp.asarray(basis, means.dtype),
+                           means)
+    return value, xp.asarray(residual) - mean_field
+
+
+def fit_fields(residuals: np.ndarray, masks: np.ndarray, degree: int = 1) -> tuple[FieldsNoise, dict]:
+    """The fields model of residual windows (N, h, w, 3) with region masks (N, R, h, w), by maximum marginal
+    likelihood (module docstring), and figures: the correlation area before and after the fields."""
+    from scipy.optimize import minimize
+
+    from .noise import correlation_area
+
+    residuals = np.asarray(residuals, np.float64)
+    masks = np.asarray(masks, np.float64)
+    height, width = residuals.shape[1:3]
+    basis = monomials(height, width, degree)
+    groups = len(REGIONS) * (degree + 1)
+
+    def model(log_params) -> FieldsNoise:
+        return FieldsNoise(float(np.exp(log_params[0])), tuple(np.exp(log_params[1:]).tolist()), degree, 1.0,
+                           (height, width))
+
+    statistics = field_statistics(residuals, masks, basis)          # once: the density is then small algebra
+
+    def negative(log_params):
+        noise = model(log_params)
+        return -float(np.sum(marginal_log_likelihood(statistics, noise.sigma, noise.variances())))
+
+    start = np.r_[np.log(np.sqrt(np.mean(residuals ** 2))), np.full(groups, np.log(0.05))]
+    best = minimize(negative, start, method="L-BFGS-B", bounds=[(np.log(1e-4), 0.0)] * len(start))
+    noise = model(best.x)
+    _, left = field_log_likelihood(residuals, masks, noise.sigma, noise.variances(), basis, left=True)
+    before, after = correlation_area(residuals), correlation_area(left)
+    noise = FieldsNoise(noise.sigma, noise.taus, degree, 1.0 / after, (height, width))
+    figures = {"sigma": noise.sigma, "taus": list(noise.taus), "degree": degree, "power": noise.power,
+               "correlation_area_window": before, "correlation_area_after_fields": after,
+               "log_likelihood_per_pixel": -float(best.fun) / (residuals.size / 3), "optimiser": str(best.message)}
+    return noise, figures
