@@ -180,23 +180,36 @@ def observe(observed: np.ndarray, config: LikelihoodConfig, channels: list[Chann
     return observation
 
 
-def fields_log_likelihood(observed, renders, objects, empty, config: LikelihoodConfig):
-    """The shading fields' log likelihood of renders (B, h, w, 3) whose object covers ``objects`` (B, h, w)
-    -> (B,): the object's region is its silhouette, the shadow's the floor the render changes from
-    ``empty`` elsewhere (:mod:`mitsuba_p3.fit.fields`)."""
+def fields_masks(renders, objects, empty):
+    """(..., 2, h, w) the shading fields' regions of renders (..., h, w, 3) whose object covers ``objects``
+    (..., h, w): the object's pixels, and the floor the render changes from ``empty`` elsewhere (its shadow)."""
     import jax.numpy as jnp
 
-    from ..fit.fields import FieldsNoise, field_log_likelihood, monomials
     from ..fit.noise import object_pixels
 
     objects = jnp.asarray(objects, bool)
-    shadow = object_pixels(renders, jnp.asarray(empty), xp=jnp) & ~objects
-    masks = jnp.stack([objects, shadow], axis=-3)
-    height, width = renders.shape[-3:-1]
+    return jnp.stack([objects, object_pixels(renders, jnp.asarray(empty), xp=jnp) & ~objects], axis=-3)
+
+
+def fields_form(config: LikelihoodConfig, height: int, width: int):
+    """(tau^2 per region and monomial (R, k), the monomials (h, w, k)) of the config's shading fields."""
+    from ..fit.fields import FieldsNoise, monomials
+
     noise = FieldsNoise(config.sigma, config.fields, config.fields_degree, config.power, (height, width))
+    return noise.variances(), monomials(height, width, config.fields_degree)
+
+
+def fields_log_likelihood(observed, renders, objects, empty, config: LikelihoodConfig):
+    """The shading fields' log likelihood of renders (B, h, w, 3) whose object covers ``objects`` (B, h, w)
+    -> (B,) (:mod:`mitsuba_p3.fit.fields`; the regions of :func:`fields_masks`)."""
+    import jax.numpy as jnp
+
+    from ..fit.fields import field_log_likelihood
+
+    variances, basis = fields_form(config, *renders.shape[-3:-1])
     residual = jnp.asarray(observed)[None] - renders
-    return config.power * field_log_likelihood(residual, masks, config.sigma, noise.variances(),
-                                               monomials(height, width, config.fields_degree), xp=jnp)
+    return config.power * field_log_likelihood(residual, fields_masks(renders, objects, empty), config.sigma,
+                                               variances, basis, xp=jnp)
 
 
 def score(observation: dict, renders, config: LikelihoodConfig, channels: list[Channel] | None = None,

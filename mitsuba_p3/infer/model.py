@@ -21,7 +21,7 @@ from ..fit.priors import Prior
 from ..render import RENDERERS
 from ..render.contract import OBJECT_SHAPES
 from ..space import DIMENSION, HYPOTHESES, OBJECT_KEYS, SLICES, render_params
-from .likelihood import LikelihoodConfig, observe, score, whiten
+from .likelihood import LikelihoodConfig, fields_form, fields_masks, observe, score, whiten
 from .mcmc import Target
 from .window import OUTSIDE_WINDOW, pixel_of, window_for, window_log_term
 
@@ -462,18 +462,14 @@ class PosteriorCore:
         neither)."""
         import jax.numpy as jnp
 
-        from ..fit.fields import FieldsNoise, field_statistics, monomials
+        from ..fit.fields import field_statistics
 
         height, width = vectors.shape[:2]
-        objects = self.objects(z, observation)
-        shadow = jnp.any(jnp.abs(bases[..., 3, :] - observation["empty"]) > 1e-3, axis=-1) & ~objects
-        masks = jnp.stack([objects, shadow])
-        form = FieldsNoise(self.config.sigma, self.config.fields, self.config.fields_degree, self.config.power,
-                           (height, width))
-        _, gram, projected, _ = field_statistics(jnp.moveaxis(vectors, -2, 0), masks,
-                                                 monomials(height, width, form.degree), xp=jnp)   # (4, R, k, 3)
+        masks = fields_masks(bases[..., 3, :], self.objects(z, observation), observation["empty"])
+        variances, basis = fields_form(self.config, height, width)
+        _, gram, projected, _ = field_statistics(jnp.moveaxis(vectors, -2, 0), masks, basis, xp=jnp)  # (4, R, k, 3)
         k = gram.shape[-1]
-        inner = gram + (self.config.sigma ** 2 / jnp.asarray(form.variances(), gram.dtype))[..., None] * jnp.eye(k)
+        inner = gram + (self.config.sigma ** 2 / jnp.asarray(variances, gram.dtype))[..., None] * jnp.eye(k)
         solved = jnp.linalg.solve(inner[None], projected)                                     # (4, R, k, 3)
         return jnp.einsum("irkc,jrkc->cij", projected, solved)
 
