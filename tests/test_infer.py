@@ -1081,10 +1081,10 @@ def test_bridge_from_p3_adds_the_neural_terms_evidence(fitted):
     rows = bridge(neural.core, neural.observation, start, config, jax.random.PRNGKey(0))
     assert rows.temperatures == start.temperatures + 1
     np.testing.assert_allclose(rows.log_evidence, expected, rtol=0, atol=1e-3)
-    # the final particles are NP3's: their log likelihoods are NP3's own, not P3's (the neural term
-    # is at least 4 nats here, 14 at the median). Nearly all agree to 1e-2; one particle of one fresh-clone run differed by a
-    # nat (cause not found: the bases and the direct render agree bit for bit), so each cached value is
-    # asked to be nearer NP3's than P3's, and the median to agree exactly
+    # the final particles are NP3's: their log likelihoods are NP3's own, not P3's (the neural term is
+    # at least 4 nats here, 14 at the median). Nearly all agree to 1e-2; one particle of one fresh-clone
+    # run differed by a nat (cause not found: the bases and the direct render agree bit for bit), so each
+    # cached value is asked to be nearer NP3's than P3's, and the median to agree to 1e-2
     cached = rows.state.loglikelihood
     final = np.stack([np.asarray(jax.vmap(neural.log_likelihood)(row)) for row in rows.state.position])
     as_p3 = np.stack([np.asarray(jax.vmap(colour.log_likelihood)(row)) for row in rows.state.position])
