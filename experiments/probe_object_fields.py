@@ -51,17 +51,17 @@ def gaussian_log_likelihood(r: np.ndarray, sigma: float) -> float:
 
 
 def masks_of(core, params: dict, render: np.ndarray, empty: np.ndarray, crop) -> np.ndarray:
-    """(2, h, w) the (object, shadow) masks of a window: the object's silhouette, and the floor the
-    render changes elsewhere."""
+    """(2, h, w) the (object, shadow) masks of a window, as the likelihood makes them (:func:`fields_masks`):
+    the object's silhouette, and the floor the render changes elsewhere."""
     import jax.numpy as jnp
 
+    from mitsuba_p3.infer.likelihood import fields_masks
     from mitsuba_p3.render.jax_tracer import silhouette
 
     origin, rays = core.camera_rays
     obj = np.asarray(silhouette({k: jnp.asarray(v) for k, v in params.items()}, origin, rays,
                                 core.renderer.floor_half_size)).reshape(core.renderer.height, core.renderer.width)[crop]
-    shadow = (np.abs(render - empty).max(-1) > 1e-3) & ~obj
-    return np.stack([obj, shadow]).astype(float)
+    return np.asarray(fields_masks(jnp.asarray(render), obj, empty), float)
 
 
 def main() -> None:
