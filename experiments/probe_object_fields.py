@@ -21,13 +21,15 @@ mask), and an absent object has no mask to carry one. sigma and the taus are fit
 marginal likelihood on the first half of the train images at their true geometry; the power is
 1 / (correlation area of the residuals left after the fields' posterior mean), the composite
 likelihood's adjustment for what correlation remains. Then, on the other half, the log-likelihood
-drop against the truth of: the object shifted 1, 2, 5, 10 mm, absent (300 mm away), and each other
-shape at the true pose and material. Both forms are printed side by side; larger drops for a wrong
-shape or an absent object, at the same drops for small shifts, is what a likelihood that keeps the
+drop against the truth of: the object shifted 1, 2, 5, 10 mm, absent (300 mm away), each other
+shape at the true pose and material, and each other colour's fitted material of the same kind at the
+true pose and shape (the nearest wrong colour: how much colour evidence the form keeps). Both forms
+are printed side by side; larger drops for a wrong shape or an absent object, at the same drops for
+small shifts, is what a likelihood that keeps the
 outline should show.
 
     python experiments/probe_object_fields.py data/studio-lo --model data/models/studio-lo [--images 24]
-        [--degree 1] [--regions split|joint]
+        [--degree 1] [--regions split|joint] [--channels independent|achromatic|mixed]
 """
 from __future__ import annotations
 
@@ -37,7 +39,7 @@ import json
 import numpy as np
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.fit.model import FittedModel, shot_params
-from mitsuba_p3.fit.fields import field_log_likelihood, fit_fields, monomials
+from mitsuba_p3.fit.fields import CHANNELS, field_log_likelihood, fit_fields, monomials
 from mitsuba_p3.fit.noise import SCORING_WINDOW
 from mitsuba_p3.infer.model import PosteriorCore
 from mitsuba_p3.infer.posterior import default_likelihood
@@ -72,6 +74,8 @@ def main() -> None:
     parser.add_argument("--degree", type=int, default=1)
     parser.add_argument("--regions", choices=("split", "joint"), default="split",
                         help="fields on the object and on its shadow apart (split) or on both as one region")
+    parser.add_argument("--channels", choices=CHANNELS, default="independent",
+                        help="fields per colour channel, shared by the three (achromatic), or a shared constant")
     args = parser.parse_args()
     dataset, fitted = load_dataset(args.dataset), FittedModel(args.model)
     core = PosteriorCore(fitted, default_likelihood(fitted, "p3", noise="fitted"), "mitsuba", *dataset.resolution)
@@ -97,18 +101,22 @@ def main() -> None:
 
     # maximum marginal likelihood of sigma and the taus on the first half
     noise, figures = fit_fields(np.stack([r for *_, r, _ in fit_half]), np.stack([m for *_, m in fit_half]),
-                                args.degree)
-    variances, fitted_power = noise.variances(), float(core.config.power)
+                                args.degree, args.channels)
+    variances, loading, fitted_power = noise.variances(), noise.loadings(), float(core.config.power)
     print(json.dumps({"fitted_power": fitted_power, **figures}), flush=True)
 
     def fields(r, masks):
-        return noise.power * float(field_log_likelihood(r, masks, noise.sigma, variances, basis))
+        return noise.power * float(field_log_likelihood(r, masks, noise.sigma, variances, basis, loading=loading))
 
     names = [f"{s:g}mm" for s in SHIFTS_MM] + [f"shape{k}" for k in range(3)]
     drops, true_shapes = {"fitted": [], "fields": []}, []
     for shot, truth, r0, B0 in probe_half:
         variants = [dict(truth, shift=truth["shift"] + np.array([s / 1000, 0], np.float32)) for s in SHIFTS_MM]
         variants += [dict(truth, kappa=np.int32(k)) for k in range(3)]
+        kind = shot.cls.material
+        others = [key for key in fitted.materials if key.endswith("-" + kind) and key != f"{shot.cls.colour}-{kind}"]
+        variants += [dict(truth, **{k: np.asarray(v, np.float32) for k, v in fitted.materials[key].items()})
+                     for key in others]
         base = {"fitted": fitted_power * gaussian_log_likelihood(r0, core.config.sigma),
                 "fields": fields(r0, B0)}
         row = {"fitted": [], "fields": []}
@@ -121,19 +129,24 @@ def main() -> None:
             drops[form].append(row[form])
         true_shapes.append(int(truth["kappa"]))
         print(json.dumps({"class": shot.class_name, "index": shot.index, "true_shape": int(truth["kappa"]),
-                          **{form: dict(zip(names, np.round(row[form], 1).tolist())) for form in row}}), flush=True)
+                          **{form: {**dict(zip(names, np.round(row[form], 1).tolist())),
+                                    "colour": round(float(min(row[form][len(names):], default=np.nan)), 1)}
+                             for form in row}}), flush=True)
     summary = {}
     for form, rows in drops.items():
-        rows = np.asarray(rows)
-        shapes = rows[:, len(SHIFTS_MM):]
+        shifts = np.asarray([row[:len(SHIFTS_MM)] for row in rows])
+        shapes = np.asarray([row[len(SHIFTS_MM):len(SHIFTS_MM) + 3] for row in rows])
+        colours = np.asarray([min(row[len(SHIFTS_MM) + 3:], default=np.nan) for row in rows])
         own = np.arange(3)[None] == np.asarray(true_shapes)[:, None]
         wrong = np.where(own, np.inf, shapes).min(axis=1)                       # the nearest other shape
-        summary[form] = {**{f"median drop {n}": round(float(np.median(rows[:, i])), 1)
+        summary[form] = {**{f"median drop {n}": round(float(np.median(shifts[:, i])), 1)
                             for i, n in enumerate(names[:len(SHIFTS_MM)])},
                          "median drop, nearest wrong shape": round(float(np.median(wrong)), 1),
+                         "median drop, nearest wrong colour (same kind)": round(float(np.nanmedian(colours)), 1),
+                         "images where a wrong colour beats the truth": int(np.sum(colours < 0)),
                          "images where a wrong shape beats the truth": int(np.sum(wrong < 0)),
-                         "images where absent is cheaper than 2 mm": int(np.sum(rows[:, 4] < rows[:, 1])),
-                         "images where absent is cheaper than 10 mm": int(np.sum(rows[:, 4] < rows[:, 3]))}
+                         "images where absent is cheaper than 2 mm": int(np.sum(shifts[:, 4] < shifts[:, 1])),
+                         "images where absent is cheaper than 10 mm": int(np.sum(shifts[:, 4] < shifts[:, 3]))}
     print(json.dumps({"dataset": args.dataset, "probed": len(probe_half), "summary": summary}, indent=1))
 
 

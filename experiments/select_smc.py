@@ -17,6 +17,10 @@ model's fitted Gaussian noise with each setting of ``--configs`` (a JSON object:
   different poses;
 - ``material``: the share of images whose modal shape's run puts most of its particles on
   the right side of the prior's shiny threshold (metal: shiny), a proxy for the learnt rule;
+- ``colour``: the share of images whose draws' median chromaticity names the right colour (the
+  fit's rule, :class:`~mitsuba_p3.fit.attributes.AttributeRules`), and ``colour_spread``: the
+  median over images of the draws' chromaticity standard deviation (mean over r, g, b), how
+  wide the colour posterior is (a noise form that forgives a shade can widen it);
 - ``seconds``: median and mean wall-clock seconds per image (each setting compiled first).
 
 No test image is used. The default's choice (5 random-walk sweeps per material update,
@@ -32,9 +36,11 @@ import json
 import time
 from dataclasses import replace
 
+import jax
 import numpy as np
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
+from mitsuba_p3.fit.attributes import AttributeRules, chromaticity, reflectance
 from mitsuba_p3.fit.model import FittedModel
 from mitsuba_p3.infer.model import PosteriorCore
 from mitsuba_p3.infer.posterior import default_likelihood
@@ -60,13 +66,15 @@ def main() -> None:
     core = PosteriorCore(fitted, default_likelihood(fitted, "p3", noise=args.noise), "mitsuba", *dataset.resolution)
     shots = [s for s in dataset.split("train") if args.size in (None, s.cls.size)]
     shots = [shots[i] for i in np.linspace(0, len(shots) - 1, min(args.images, len(shots))).astype(int)]
+    rules = AttributeRules.from_materials(fitted.materials)
+    constrain = jax.jit(core.prior.constrain)
     # compile every setting once, so that no setting's first image is charged for it
     for config in configs.values():
         sample_smc(core, core.observe(dataset.image(shots[0])), replace(config, max_temperatures=2))
     report = {"dataset": args.dataset, "images": len(shots), "noise": args.noise, "size": args.size}
     for name, config in configs.items():
         space = hypotheses_of(core.prior, config.kinds)
-        right, log_true, z_true, seconds, material, gap = [], [], [], [], [], []
+        right, log_true, z_true, seconds, material, gap, colour, spread = [], [], [], [], [], [], [], []
         for i, shot in enumerate(shots):
             start = time.perf_counter()
             run = sample_smc(core, core.observe(dataset.image(shot)), config)
@@ -77,14 +85,21 @@ def main() -> None:
             shiny = np.mean([v["shiny"] for h, v in run.statistics["hypotheses"].items() if h.split("/")[0] == modal])
             material.append(bool(shiny > 0.5) == (shot.cls.material == "metal"))
             log_true.append(float(np.log(max(weights[shot.cls.shape], 1e-12))))
+            flat = run.positions.reshape(-1, run.positions.shape[-1])
+            samples = {k: np.asarray(v) for k, v in constrain(flat).items()}
+            samples["class"] = np.argmax(samples["class_probabilities"], axis=-1)
+            colour.append(rules.decide(samples)["colour"] == shot.cls.colour)
+            spread.append(float(np.mean(np.std(chromaticity(reflectance(samples)), axis=0))))
             z_true.append(max(v["log_evidence"] for h, v in run.statistics["hypotheses"].items()
                               if h.split("/")[0] == shot.cls.shape))
             rows = run.particles.rows
             mine = rows.log_evidence[[SHAPES[c] == shot.cls.shape for c in space.classes[rows.index]]]
             gap.append(float(np.ptp(mine)) if len(mine) > 1 else np.nan)
             print(f"{name} {i + 1}/{len(shots)} {shot.class_name}: {'ok' if right[-1] else 'WRONG'} "
-                  f"{seconds[-1]:.1f} s, island gap {gap[-1]:.1f}", flush=True)
+                  f"{seconds[-1]:.1f} s, island gap {gap[-1]:.1f}, colour {'ok' if colour[-1] else 'WRONG'} "
+                  f"(spread {spread[-1]:.3f})", flush=True)
         report[name] = {"shape": float(np.mean(right)), "material": float(np.mean(material)),
+                        "colour": float(np.mean(colour)), "colour_spread": float(np.median(spread)),
                         "log_p_true": float(np.mean(log_true)),
                         "mean_log_z_true": float(np.mean(z_true)),
                         "island_gap": {"median": float(np.nanmedian(gap)), "p90": float(np.nanpercentile(gap, 90))}

@@ -423,27 +423,43 @@ def test_spectral_form_discounts_smooth_mismatch_and_keeps_edges():
 
 def test_shading_fields_density_is_the_marginal_gaussian_and_its_fit_recovers_the_scales():
     """The shading fields' log likelihood (:mod:`mitsuba_p3.fit.fields`) equals the multivariate normal
-    density with covariance sigma^2 I + B T B' built column by column (numpy and JAX), and maximum
-    marginal likelihood on residuals drawn from that model recovers sigma and the taus."""
+    density with covariance sigma^2 I + B T B' built column by column (numpy and JAX) for every channel
+    loading, achromatic fields do not forgive a change of hue as independent ones do, and maximum
+    marginal likelihood on residuals drawn from that model (:func:`sample_fields`, as SBC draws them)
+    recovers sigma and the taus."""
     import jax.numpy as jnp
     from scipy.stats import multivariate_normal
 
-    from mitsuba_p3.fit.fields import FieldsNoise, field_log_likelihood, fit_fields, monomials
+    from mitsuba_p3.fit.fields import (CHANNELS, FieldsNoise, field_log_likelihood, fit_fields, loadings,
+                                       monomials, sample_fields)
 
     rng = np.random.default_rng(5)
     size = (5, 6)
     basis = monomials(*size, 1)
     masks = np.zeros((2,) + size)
     masks[0, 1:3, 1:4], masks[1, 3:5, 2:5] = 1, 1
-    variances = np.array([[0.04, 0.01, 0.02], [0.03, 0.005, 0.001]])
-    design = np.concatenate([(m[..., None] * basis).reshape(-1, 3) for m in masks], axis=1)
-    covariance = 0.1 ** 2 * np.eye(30) + design @ np.diag(variances.reshape(-1)) @ design.T
     residual = rng.normal(0, 0.1, size + (3,))
-    exact = sum(multivariate_normal(np.zeros(30), covariance).logpdf(residual[..., c].reshape(-1)) for c in range(3))
-    assert field_log_likelihood(residual, masks, 0.1, variances, basis) == pytest.approx(exact, rel=1e-10)
-    ours = field_log_likelihood(jnp.asarray(residual[None], jnp.float32), jnp.asarray(masks[None]), 0.1, variances,
-                                basis, xp=jnp)
-    assert float(ours[0]) == pytest.approx(exact, rel=1e-5)
+    per_monomial = np.array([[0.04, 0.01, 0.02], [0.03, 0.005, 0.001]])
+    drops = {}
+    for channels in CHANNELS:
+        loading = loadings(1, channels)
+        variances = per_monomial[:, loading.any(axis=2).argmax(axis=1)]          # (regions, columns)
+        # the covariance of the (h, w, c)-flattened window, column by column
+        design = np.stack([(m[..., None, None] * basis[..., :, None] * column[None, None]).sum(axis=2).reshape(-1)
+                           for m in masks for column in loading], axis=1)
+        covariance = 0.1 ** 2 * np.eye(90) + design @ np.diag(variances.reshape(-1)) @ design.T
+        exact = multivariate_normal(np.zeros(90), covariance).logpdf(residual.reshape(-1))
+        assert field_log_likelihood(residual, masks, 0.1, variances, basis, loading=loading) == pytest.approx(
+            exact, rel=1e-10)
+        ours = field_log_likelihood(jnp.asarray(residual[None], jnp.float32), jnp.asarray(masks[None]), 0.1, variances,
+                                    basis, xp=jnp, loading=loading)
+        assert float(ours[0]) == pytest.approx(exact, rel=1e-5)
+        # a red offset on the object (a change of hue): the independent fields forgive most of it, the
+        # achromatic ones two thirds less (they absorb only its grey part)
+        red = residual + 0.3 * masks[0][..., None] * np.array([1.0, 0.0, 0.0])
+        drops[channels] = float(field_log_likelihood(residual, masks, 0.1, variances, basis, loading=loading)
+                                - field_log_likelihood(red, masks, 0.1, variances, basis, loading=loading))
+    assert drops["achromatic"] > 5 + 2 * drops["independent"]
     # residuals drawn from the model: a constant and a tilt on an object, a constant on its shadow
     size, count = (40, 48), 120            # (the correlation area needs windows well above its 12-pixel lags)
     truth = FieldsNoise(0.02, (0.1, 0.05, 0.03, 0.01), 1, 1.0, size)
@@ -453,9 +469,8 @@ def test_shading_fields_density_is_the_marginal_gaussian_and_its_fit_recovers_th
         top, left = rng.integers(8, 20, 2)
         masks[n, 0, top:top + 10, left:left + 12] = 1
         masks[n, 1, top + 10:top + 13, left:left + 14] = 1
-    weights = rng.normal(size=(count, 2, 3, 3)) * np.sqrt(truth.variances())[None, :, :, None]
-    residuals = (np.einsum("nrhw,hwk,nrkc->nhwc", masks, basis, weights)
-                 + truth.sigma * rng.normal(size=(count,) + size + (3,)))
+    residuals = np.stack([sample_fields(m, truth.variances(), basis, rng) for m in masks])
+    residuals += truth.sigma * rng.normal(size=(count,) + size + (3,))
     fitted, figures = fit_fields(residuals, masks, degree=1)
     assert fitted.sigma == pytest.approx(truth.sigma, rel=0.02)
     # (the shadow's tilt, 0.01 over a 3-pixel strip beside noise of 0.02, is the least determined)

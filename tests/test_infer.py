@@ -668,23 +668,55 @@ def test_the_shading_fields_likelihood_traces_the_object_it_scores(fitted):
                                                     observation)
         assert np.isfinite(float(loglik))
     # the material update's Gram matrices are the fields' precision: two colours at one pose differ in the
-    # likelihood by what the quadratic form of the bases says (no pixel clipped)
-    from mitsuba_p3.infer.model import contract_params
+    # likelihood by what the quadratic form of the bases says (no pixel clipped), for fields per channel
+    # ((3, 4, 4) per channel) and shared by the channels ((3, 3, 4, 4), the channels coupled)
+    from dataclasses import replace
 
-    bases = core._image(z, observation, bases=True)
-    gram = np.asarray(core._gram(bases, observation, 1.0, z))
-    p = contract_params(core.prior, z)
-    values = []
-    for shade in (1.0, 0.8):
-        colour = p["colour"] * shade
-        coefficients = np.stack([np.array([colour[c] * p["ambient"], colour[c] * p["diffuse"], p["specular"], -1.0])
-                                 for c in range(3)])
-        image = (colour * (p["ambient"] * bases[..., 0, :] + p["diffuse"] * bases[..., 1, :])
-                 + p["specular"] * bases[..., 2, :] + bases[..., 3, :])
-        assert float(jnp.max(image)) < 1.0
-        values.append((float(core._score(z, image, observation)),
-                       -0.5 * sum(coefficients[c] @ gram[c] @ coefficients[c] for c in range(3))))
-    assert values[0][0] - values[1][0] == pytest.approx(values[0][1] - values[1][1], rel=1e-3, abs=1e-3)
+    from mitsuba_p3.infer.model import contract_params
+    from mitsuba_p3.space import SLICES
+
+    for channels in ("independent", "achromatic"):
+        core = PosteriorCore(fitted, replace(likelihood, fields_channels=channels), "mitsuba", 120, 160)
+        bases = core._image(z, observation, bases=True)
+        gram = np.asarray(core._gram(bases, observation, 1.0, z))
+        assert gram.shape == ((3, 4, 4) if channels == "independent" else (3, 3, 4, 4))
+        full = gram if gram.ndim == 4 else np.einsum("cd,cij->cdij", np.eye(3), gram)
+        p = contract_params(core.prior, z)
+        values = []
+        for shade in (np.ones(3), np.array([0.8, 0.95, 0.7])):
+            colour = p["colour"] * shade
+            coefficients = np.stack([np.array([colour[c] * p["ambient"], colour[c] * p["diffuse"], p["specular"],
+                                               -1.0]) for c in range(3)])
+            image = (colour * (p["ambient"] * bases[..., 0, :] + p["diffuse"] * bases[..., 1, :])
+                     + p["specular"] * bases[..., 2, :] + bases[..., 3, :])
+            assert float(jnp.max(image)) < 1.0
+            values.append((float(core._score(z, image, observation)),
+                           -0.5 * np.einsum("ci,cdij,dj->", coefficients, full, coefficients)))
+        assert values[0][0] - values[1][0] == pytest.approx(values[0][1] - values[1][1], rel=1e-3, abs=1e-3)
+        if channels == "achromatic":
+            # the coupled colour conditional is the exact conditional where no colour is clipped: between two
+            # of its draws the target and the proposal's density change alike
+            slope = jnp.stack([p["ambient"], p["diffuse"], 0.0])
+            offset = jnp.stack([0.0, 0.0, p["specular"]])
+            conditional = core._coupled_colour_conditional(jnp.asarray(gram), slope, offset)
+            gmm, cols = core.prior.gmms["colour"], SLICES["colour"]
+            target = lambda c: float(core.logdensity(z.at[cols].set((c - gmm.mean) / gmm.std), observation))  # noqa
+            draws = [conditional.draw(jax.random.PRNGKey(k)) for k in range(12)]
+            draws = [c for c in draws if bool(jnp.all((c > 0) & (c < 1)))]
+            assert len(draws) >= 4
+            gaps = [(target(a) - target(b)) - float(conditional.log_q(a) - conditional.log_q(b))
+                    for a, b in zip(draws[:-1], draws[1:])]
+            np.testing.assert_allclose(gaps, 0.0, atol=2e-2)
+            # and its draws follow it: the mixture's mean and covariance
+            many = np.asarray(jax.vmap(conditional.draw)(jax.random.split(jax.random.PRNGKey(1), 4000)), np.float64)
+            w = np.exp(np.asarray(conditional.log_mix, np.float64))
+            means = np.asarray(conditional.mean, np.float64)
+            mean = w @ means
+            covariance = sum(wk * (np.linalg.inv(np.asarray(pk, np.float64)) + np.outer(mk, mk))
+                             for wk, pk, mk in zip(w, conditional.precision, means)) - np.outer(mean, mean)
+            scale = np.sqrt(np.diag(covariance))
+            np.testing.assert_allclose(many.mean(axis=0), mean, atol=0.1 * scale.max())
+            np.testing.assert_allclose(np.sqrt(np.diag(np.cov(many.T))), scale, rtol=0.1)
 
 
 def test_a_scene_whose_object_leaves_the_window_has_likelihood_zero(fitted):
@@ -1189,6 +1221,42 @@ def test_sbc_runs_on_the_phong_model_and_resumes(fitted, tmp_path):
         run_sbc(core, sample, 4, 9, cache=cache, tag='{"gradient_steps": 1}')
     with pytest.raises(ConfigError, match="power 1"):
         run_sbc(PosteriorCore(fitted, LikelihoodConfig("p3", sigma=0.03, power=0.1), "mitsuba", *RES), sample, 1, 9)
+
+
+def test_sbc_of_the_shading_fields_simulates_fields_on_the_window_the_sampler_scores(fitted, tmp_path):
+    """SBC under ``--noise fields`` checks the sampler on the fields' own model: power 1 with sigma and the
+    taus divided by sqrt(power); the simulated image is the white-noise one plus fields on the true
+    object's pixels and its shadow inside the scoring window the simulation chose, nowhere else, and
+    the sampler is handed that window."""
+    from mitsuba_p3.evaluate.sbc import model_core, run_sbc, simulate, simulate_scored, smc_sampler
+    from mitsuba_p3.fit.fields import FieldsNoise
+    from mitsuba_p3.infer.smc import SMCConfig
+
+    form = FieldsNoise.from_dict(fitted.noise.fields)
+    core = model_core(fitted.root, resolution=RES, noise="fields")
+    assert core.config.power == 1.0 and core.config.sigma == pytest.approx(form.sigma / np.sqrt(form.power))
+    np.testing.assert_allclose(core.config.fields, np.asarray(form.taus) / np.sqrt(form.power))
+    window = (24, 32)
+    for seed in range(8):
+        white, _, _ = simulate(core, np.random.default_rng(seed))
+        image, truth, _, (top, left, height, width) = simulate_scored(core, np.random.default_rng(seed), window)
+        # the fields are drawn on the window the white-noise image's footprint picks (the whole image where none fits)
+        picked = core.window_for(white, window)
+        assert (top, left, height, width) == (picked or (0, 0, *RES))
+        changed = np.any(np.abs(image - white) > 1e-6, axis=-1)
+        assert not changed[:top].any() and not changed[top + height:].any()
+        assert not changed[:, :left].any() and not changed[:, left + width:].any()
+        objects = np.zeros(RES, bool)
+        objects[top:top + height, left:left + width] = np.asarray(core.objects(
+            core.prior.unconstrain(truth), core.observe(white, (top, left, height, width))))
+        if objects.any() and picked is not None:
+            break
+    assert picked is not None and objects.any() and changed[objects].all()
+    assert changed.sum() < changed.size - objects.sum()   # the bare floor away from object and shadow stays white
+    sample = smc_sampler(core, SMCConfig(particles=4, oversample=2, mcmc_steps=1, final_steps=0, draws=16, islands=1,
+                                         window=window))
+    result = run_sbc(core, sample, 1, 9, window=window)
+    assert result.ranks.shape == (1, 8) and 0 <= result.ranks.min() and result.ranks.max() <= 9
 
 
 def test_infer_names_the_material_by_a_rule_saved_by_evaluate(fitted, observed, tmp_path):

@@ -163,7 +163,8 @@ def sbc(
                                                        f"{SMCConfig.particles})."),
     resolution: str = typer.Option("120x160", help="HxW of the simulated images."),
     seed: int = typer.Option(0, help="Seed of the simulations and the sampler."),
-    noise: str = typer.Option("fitted", help="The likelihood's power: fitted (1 / correlation area) or sandwich."),
+    noise: str = typer.Option("fitted", help="The likelihood: fitted (the Gaussian at power 1 / correlation area), "
+                                             "sandwich (the pose's power) or fields (the shading fields' form)."),
     settings: Optional[List[str]] = typer.Option(None, "--set", help=SET_HELP),
     config_file: Optional[Path] = typer.Option(None, "--config", help=CONFIG_HELP),
 ) -> None:
@@ -174,8 +175,8 @@ def sbc(
     from ..evaluate.sbc import calibrate_model
     from ..files import claim_output_folder, folder_lock
 
-    if noise not in ("fitted", "sandwich"):
-        raise ConfigError(f"--noise must be fitted or sandwich, got {noise!r}")
+    if noise not in ("fitted", "sandwich", "fields"):
+        raise ConfigError(f"--noise must be fitted, sandwich or fields, got {noise!r}")
     if images < 2 or draws < 1:
         raise ConfigError(f"--images must be at least 2 and --draws at least 1; got {images} and {draws}")
     height, width = parse_resolution(resolution)

@@ -14,6 +14,14 @@ that sigma the likelihood is exactly the model that made the image, and its
 posterior is the tempered one inference uses, so the check is of the sampler, not
 of the renderer's fit to real images.
 
+Under the shading fields' form (``noise="fields"``, :mod:`mitsuba_p3.fit.fields`) the
+tempered density beta log p(r) is, but for its log-determinant's factor, the Gaussian of
+covariance (sigma^2 I + B T B') / beta, so the model checked is that one: white noise of
+sigma / sqrt(beta) everywhere, and on the scoring window fields drawn with the taus /
+sqrt(beta) on the true object's pixels and the floor its shadow changes, at power 1. The
+fields live on the window's coordinates, so the simulation picks the window (from the image
+before the fields, as the sampler would) and the sampler scores that window.
+
 Checked coordinates: the position (x, y), the log half-extents (3) and the colour
 (RGB). Each is reported the way the field's tools print it (the ``SBC`` R package, ``sbi``'s
 ``check_sbc``, ArviZ's ``plot_ecdf_pit``):
@@ -141,6 +149,12 @@ class SBCResult:
 def simulate(core, rng: np.random.Generator) -> tuple[np.ndarray, dict, int]:
     """One scene from the prior and its image under the likelihood (see the module docstring):
     (image (H, W, 3), natural values, class index)."""
+    return _simulate(core, rng)[:3]
+
+
+def _simulate(core, rng: np.random.Generator):
+    """:func:`simulate`'s image, natural values and class index, and the scene's unconstrained position
+    and noiseless render."""
     import jax.numpy as jnp
 
     from ..space import render_params
@@ -148,14 +162,39 @@ def simulate(core, rng: np.random.Generator) -> tuple[np.ndarray, dict, int]:
     prior, config = core.prior, core.config
     z = prior.sample(rng, 1)[0].astype(np.float32)
     x = {k: np.asarray(v) for k, v in prior.constrain(jnp.asarray(z)).items()}
-    clean = core.renderer.render({k: np.asarray(v) for k, v in render_params(x).items()})
+    clean = np.asarray(core.renderer.render({k: np.asarray(v) for k, v in render_params(x).items()}))
     sigma = config.sigma / np.sqrt(config.power)
     image = clean + sigma * rng.standard_normal(clean.shape)
-    return image.astype(np.float32), x, int(np.argmax(x["class_probabilities"]))
+    return image.astype(np.float32), x, int(np.argmax(x["class_probabilities"])), z, clean
+
+
+def simulate_scored(core, rng: np.random.Generator, window: tuple[int, int] | None = None):
+    """One simulation and where the sampler scores it: (image, natural values, class index, window).
+    Under the fitted Gaussian, :func:`simulate`'s and no window (the sampler picks its own). Under the
+    shading fields' form, the fields drawn on the ``window`` (height, width) that the white-noise image's
+    footprint chooses (the whole image where none is given or fits), and that window (top, left, height,
+    width), which the sampler must score: the fields live on its coordinates (module docstring)."""
+    import jax.numpy as jnp
+
+    image, truth, cls, z, clean = _simulate(core, rng)
+    if core.config.fields is None:
+        return image, truth, cls, None
+    from ..fit.fields import sample_fields
+    from ..infer.likelihood import fields_form, fields_masks
+
+    where = (core.window_for(image, tuple(window)) if window else None) or (0, 0, *image.shape[:2])
+    top, left, height, width = where
+    observation = core.observe(image, where)
+    objects = core.objects(jnp.asarray(z), observation)
+    masks = fields_masks(jnp.asarray(clean[top:top + height, left:left + width]), objects, observation["empty"])
+    variances, basis, loading = fields_form(core.config, height, width)
+    image[top:top + height, left:left + width] += sample_fields(np.asarray(masks), variances, basis, rng,
+                                                                loading).astype(np.float32)
+    return image, truth, cls, where
 
 
 def run_sbc(core, sample, images: int, draws: int, seed: int = 0, cache=None, progress=None,
-            tag: str = "{}") -> SBCResult:
+            tag: str = "{}", window: tuple[int, int] | None = None) -> SBCResult:
     """SBC of ``sample(observation, seed) -> (positions (L', 15), class probabilities)`` on ``images``
     simulations; ``core`` is a :class:`~mitsuba_p3.infer.model.PosteriorCore` whose likelihood has power 1
     (the model the images come from). Each image's ranks use ``draws`` of its posterior draws.
@@ -182,8 +221,10 @@ def run_sbc(core, sample, images: int, draws: int, seed: int = 0, cache=None, pr
                 done = {k: list(f[k]) for k in done}
     for i in range(len(done["ranks"]), images):
         rng = np.random.default_rng([seed, i])
-        image, truth, cls = simulate(core, rng)
-        positions, class_probabilities = sample(core.observe(image), int(rng.integers(2 ** 31)))
+        image, truth, cls, where = simulate_scored(core, rng, window)
+        seed_i = int(rng.integers(2 ** 31))
+        positions, class_probabilities = (sample(core.observe(image), seed_i) if where is None else
+                                          sample(core.observe(image), seed_i, where))
         chosen = positions[rng.choice(len(positions), size=draws, replace=len(positions) < draws)]
         values = checked_values({k: np.asarray(v) for k, v in core.prior.constrain(jnp.asarray(chosen)).items()})
         done["ranks"].append(rank_of(checked_values(truth), values, rng))
@@ -198,14 +239,15 @@ def run_sbc(core, sample, images: int, draws: int, seed: int = 0, cache=None, pr
 
 
 def smc_sampler(core, config):
-    """The SBC's view of the SMC: observation, seed -> (positions, class probabilities)."""
+    """The SBC's view of the SMC: observation, seed (and the window to score, where the simulation
+    chose it) -> (positions, class probabilities)."""
     from dataclasses import replace
 
     from ..infer.evidence import shape_weights
     from ..infer.smc import sample_smc
 
-    def sample(observation, seed):
-        run = sample_smc(core, observation, replace(config, seed=seed))
+    def sample(observation, seed, window=None):
+        run = sample_smc(core, observation, replace(config, seed=seed), window=window)
         probabilities = np.array(list(shape_weights(run.statistics).values()))
         return run.positions.reshape(-1, run.positions.shape[-1]), probabilities
 
@@ -215,7 +257,8 @@ def smc_sampler(core, config):
 def model_core(model_dir, renderer: str = "mitsuba", resolution: tuple[int, int] = (120, 160), noise: str = "fitted"):
     """The :class:`~mitsuba_p3.infer.model.PosteriorCore` of a fitted model whose likelihood is the one its
     own images are simulated from: the fitted Gaussian at sigma / sqrt(power), power 1 (``noise``:
-    ``fitted``, the power 1 / correlation area, or ``sandwich``, the pose's)."""
+    ``fitted``, the power 1 / correlation area, or ``sandwich``, the pose's), or the shading fields' form
+    (``fields``) with its sigma and taus divided by sqrt(power)."""
     from ..errors import FitError
     from ..fit.model import FittedModel
     from ..infer.likelihood import LikelihoodConfig
@@ -223,6 +266,18 @@ def model_core(model_dir, renderer: str = "mitsuba", resolution: tuple[int, int]
 
     fitted = FittedModel(model_dir)
     model_noise = fitted.noise
+    if noise == "fields":
+        from ..fit.fields import FieldsNoise
+
+        if model_noise.fields is None:
+            raise FitError(f"{model_dir} has no shading fields: refit its noise stage "
+                           "(mitsuba-p3 fit ... --stages noise)")
+        form = FieldsNoise.from_dict(model_noise.fields)
+        scale = 1.0 / np.sqrt(form.power)
+        likelihood = LikelihoodConfig("p3", sigma=form.sigma * scale, fields=tuple(t * scale for t in form.taus),
+                                      fields_degree=form.degree, fields_channels=form.channels,
+                                      shadows=model_noise.shadows)
+        return PosteriorCore(fitted, likelihood, renderer, *resolution)
     power = model_noise.power if noise == "fitted" else model_noise.pose_power
     if power is None:
         raise FitError(f"{model_dir} has no sandwich power: refit its noise stage (mitsuba-p3 fit ... --stages noise)")
@@ -245,10 +300,10 @@ def calibrate_model(model_dir, out, images: int = 200, draws: int = 99, resoluti
                     seed: int = 0, noise: str = "fitted", progress=None, config=None) -> dict:
     """SBC of the default sampler (tempered SMC) on a fitted model's own renders: ``images`` simulations
     from its prior, each rendered with its observation model plus the likelihood's noise at the effective
-    sigma / sqrt(power) that inference uses (``noise``: the power 1 / correlation area, ``fitted``, or the
-    sandwich power along the pose, ``sandwich``); ``config``: the :class:`~mitsuba_p3.infer.smc.SMCConfig`
-    (default: the default). Writes ``out/sbc.json``, ``sbc.png``, ``calibration.png``
-    and ``cache.npz``, from which a killed run resumes; returns the summary."""
+    sigma / sqrt(power) that inference uses (``noise``: the power 1 / correlation area, ``fitted``, the
+    sandwich power along the pose, ``sandwich``, or the shading fields' form, ``fields``); ``config``: the
+    :class:`~mitsuba_p3.infer.smc.SMCConfig` (default: the default). Writes ``out/sbc.json``, ``sbc.png``,
+    ``calibration.png`` and ``cache.npz``, from which a killed run resumes; returns the summary."""
     from pathlib import Path
 
     from ..files import atomic_json
@@ -258,8 +313,12 @@ def calibrate_model(model_dir, out, images: int = 200, draws: int = 99, resoluti
     core, out = model_core(model_dir, "mitsuba", resolution, noise), Path(out)
     out.mkdir(parents=True, exist_ok=True)
     config = config or SMCConfig()
+    # a cache of one noise form is not resumed under another (the fitted form's tags name none: the first caches')
+    tag = settings_tag(config)
+    if noise != "fitted":
+        tag = json.dumps({"noise": noise, **json.loads(tag)}, sort_keys=True)
     result = run_sbc(core, smc_sampler(core, config), images, draws, seed, cache=out / "cache.npz", progress=progress,
-                     tag=settings_tag(config))
+                     tag=tag, window=config.window)
     summary = {"model": str(model_dir), "noise": noise, "likelihood_sigma": core.config.sigma,
                "smc": dataclasses.asdict(config), **result.summary()}
     atomic_json(out / "sbc.json", summary)

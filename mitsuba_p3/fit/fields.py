@@ -22,7 +22,15 @@ Each region and polynomial degree has its own tau. Integrating w out (Woodbury),
                - 1/2 sum_g log det(I + T_g G_g / sigma^2) - P/2 log(2 pi sigma^2),
 
 with G_g = B_g'B_g and b_g = B_g'r for region g (the regions do not overlap, so the
-regions' blocks are independent). A field changes the object's shading smoothly; it
+regions' blocks are independent).
+
+**Across the colour channels** (``channels``) the fields are ``independent`` (a field per
+channel: any change of the object's colour is a constant field, so the form forgives a
+wrong colour nearly as much as a wrong shade), ``achromatic`` (one field shared by the three
+channels: it brightens or darkens, it cannot change a hue), or ``mixed`` (the constant
+shared, the higher degrees per channel). A basis column is then a region mask times a
+monomial times a channel loading (:func:`loadings`), and the Woodbury solve runs over the
+columns of all three channels at once. A field changes the object's shading smoothly; it
 cannot move the outline (it lives on the rendered mask) and an absent object has no
 mask to carry one, so the outline and the object's presence keep their evidence while
 a wrong shade costs little. The log-determinant is the fields' Occam factor: a larger
@@ -45,6 +53,12 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 REGIONS = ("object", "shadow")
+CHANNELS = ("independent", "achromatic", "mixed")
+# the loading the noise stage fits: independent fields forgive a wrong colour (on fsclvr's and studio's train
+# images the nearest wrong colour of the same kind cost 4-9 nats against the fitted Gaussian's 186-222, and
+# beat the truth in 3-4 of 12); achromatic ones keep it (193 both) and keep most of the outline's gain
+# (experiments/probe_object_fields.py --channels; results/fields/README.md)
+FIT_CHANNELS = "achromatic"
 
 
 @dataclass(frozen=True)
@@ -56,6 +70,7 @@ class FieldsNoise:
     degree: int                # the polynomials' highest degree
     power: float               # 1 / the correlation area the fields leave
     window: tuple              # (height, width) of the windows it was fitted on
+    channels: str = "independent"   # CHANNELS: how the fields load on r, g, b (module docstring)
 
     def as_dict(self) -> dict:
         return {**asdict(self), "taus": list(self.taus), "window": list(self.window)}
@@ -63,13 +78,50 @@ class FieldsNoise:
     @classmethod
     def from_dict(cls, d: dict) -> "FieldsNoise":
         return cls(sigma=float(d["sigma"]), taus=tuple(float(t) for t in d["taus"]), degree=int(d["degree"]),
-                   power=float(d["power"]), window=tuple(int(v) for v in d["window"]))
+                   power=float(d["power"]), window=tuple(int(v) for v in d["window"]),
+                   channels=str(d.get("channels", "independent")))
 
     def variances(self) -> np.ndarray:
-        """(regions, k) tau^2 of every basis column, k = the number of monomials."""
-        per = np.array([total for total in range(self.degree + 1) for _ in range(total + 1)])
-        taus = np.asarray(self.taus, np.float64).reshape(len(REGIONS), self.degree + 1)
-        return taus[:, per] ** 2
+        """(regions, K) tau^2 of every basis column (:func:`loadings`' columns)."""
+        return column_variances(self.taus, self.degree, self.channels)
+
+    def loadings(self) -> np.ndarray:
+        """(K, k, 3) the basis columns' loadings (:func:`loadings`)."""
+        return loadings(self.degree, self.channels)
+
+
+def _degrees(degree: int) -> np.ndarray:
+    """(k,) the total degree of each monomial of :func:`monomials`."""
+    return np.array([total for total in range(degree + 1) for _ in range(total + 1)])
+
+
+def loadings(degree: int, channels: str = "independent") -> np.ndarray:
+    """(K, k, 3): basis column j of a region is sum over monomials m and channels c of L[j, m, c] times
+    the region's mask times monomial m in channel c. ``independent``: a column per monomial and
+    channel; ``achromatic``: a column per monomial, the same in the three channels; ``mixed``: the
+    constant achromatic, the other monomials per channel."""
+    if channels not in CHANNELS:
+        raise ValueError(f"unknown fields channels {channels!r}; choose {', '.join(CHANNELS)}")
+    columns = []
+    for m, total in enumerate(_degrees(degree)):
+        if channels == "achromatic" or (channels == "mixed" and total == 0):
+            column = np.zeros((len(_degrees(degree)), 3))
+            column[m] = 1.0
+            columns.append(column)
+        else:
+            for c in range(3):
+                column = np.zeros((len(_degrees(degree)), 3))
+                column[m, c] = 1.0
+                columns.append(column)
+    return np.stack(columns)
+
+
+def column_variances(taus, degree: int, channels: str = "independent") -> np.ndarray:
+    """(regions, K) tau^2 of each basis column of :func:`loadings`: its region's tau at its monomial's degree."""
+    per = _degrees(degree)
+    taus = np.asarray(taus, np.float64).reshape(len(REGIONS), degree + 1)
+    column_degree = np.array([per[np.nonzero(column.any(axis=1))[0][0]] for column in loadings(degree, channels)])
+    return taus[:, column_degree] ** 2
 
 
 def monomials(height: int, width: int, degree: int) -> np.ndarray:
@@ -96,35 +148,67 @@ def field_statistics(residual, masks, basis, xp=np) -> tuple:
     return xp.sum(residual * residual, axis=(-3, -2, -1)), gram, projected, height * width * 3
 
 
-def marginal_log_likelihood(statistics: tuple, sigma: float, variances, xp=np, solved: bool = False):
-    """log p(r) (...,) from :func:`field_statistics` under ``sigma`` and the fields' ``variances`` (R, k);
-    with ``solved``, also the fields' posterior means (..., R, k, 3)."""
+def column_statistics(statistics: tuple, loading, xp=np) -> tuple:
+    """:func:`field_statistics` over the basis columns of ``loading`` (K, k, 3): (r'r, G (..., R, K, K),
+    b (..., R, K), count). Columns in different channels are orthogonal; each channel's monomials share
+    the per-channel Gram matrix."""
     squares, gram, projected, count = statistics
-    k = gram.shape[-1]
-    eye = xp.eye(k, dtype=gram.dtype)
+    loading = xp.asarray(loading, gram.dtype)
+    full = xp.einsum("jmc,inc,...mn->...ji", loading, loading, gram)
+    return squares, full, xp.einsum("jmc,...mc->...j", loading, projected), count
+
+
+def marginal_log_likelihood(statistics: tuple, sigma: float, variances, xp=np, solved: bool = False,
+                            loading=None):
+    """log p(r) (...,) from :func:`field_statistics` under ``sigma`` and the fields' ``variances`` (R, K) of
+    the columns of ``loading`` (K, k, 3; default: independent channels); with ``solved``, also the fields'
+    posterior means (..., R, K)."""
+    gram = statistics[1]
+    if loading is None:
+        loading = loadings(int(round((np.sqrt(8 * gram.shape[-1] + 1) - 3) / 2)))
+    squares, gram, projected, count = column_statistics(statistics, loading, xp)
+    size = gram.shape[-1]
+    eye = xp.eye(size, dtype=gram.dtype)
     variances = xp.asarray(variances, gram.dtype)
-    means = xp.linalg.solve(gram + (sigma ** 2 / variances)[..., None] * eye, projected)  # (..., R, k, 3)
-    quadratic = squares - xp.sum(projected * means, axis=(-3, -2, -1))
+    means = xp.linalg.solve(gram + (sigma ** 2 / variances)[..., None] * eye, projected[..., None])[..., 0]
+    quadratic = squares - xp.sum(projected * means, axis=(-2, -1))
     _, logdet = xp.linalg.slogdet(eye + variances[..., :, None] * gram / sigma ** 2)      # (..., R)
-    value = (-0.5 * quadratic / sigma ** 2 - 0.5 * 3 * xp.sum(logdet, axis=-1)
+    value = (-0.5 * quadratic / sigma ** 2 - 0.5 * xp.sum(logdet, axis=-1)
              - 0.5 * count * np.log(2 * np.pi * sigma ** 2))
     return (value, means) if solved else value
 
 
-def field_log_likelihood(residual, masks, sigma: float, variances, basis, xp=np, left: bool = False):
+def field_log_likelihood(residual, masks, sigma: float, variances, basis, xp=np, left: bool = False, loading=None):
     """log p(r) of residual windows (..., h, w, 3) whose region masks are ``masks`` (..., R, h, w) under
-    the fields of ``variances`` (R, k) tau^2 and ``basis`` (h, w, k) (module docstring) -> (...,).
-    With ``left``, also the residual the fields' posterior mean leaves (..., h, w, 3)."""
+    the fields of ``variances`` (R, K) tau^2, ``basis`` (h, w, k) and ``loading`` (K, k, 3; default:
+    independent channels) (module docstring) -> (...,). With ``left``, also the residual the fields'
+    posterior mean leaves (..., h, w, 3)."""
+    if loading is None:
+        loading = loadings(int(round((np.sqrt(8 * np.shape(basis)[-1] + 1) - 3) / 2)))
     statistics = field_statistics(residual, masks, basis, xp)
-    value, means = marginal_log_likelihood(statistics, sigma, variances, xp, solved=True)
+    value, means = marginal_log_likelihood(statistics, sigma, variances, xp, solved=True, loading=loading)
     if not left:
         return value
-    mean_field = xp.einsum("...rhw,hwk,...rkc->...hwc", xp.asarray(masks, means.dtype), xp.asarray(basis, means.dtype),
-                           means)
+    mean_field = xp.einsum("...rhw,hwm,jmc,...rj->...hwc", xp.asarray(masks, means.dtype),
+                           xp.asarray(basis, means.dtype), xp.asarray(loading, means.dtype), means)
     return value, xp.asarray(residual) - mean_field
 
 
-def fit_fields(residuals: np.ndarray, masks: np.ndarray, degree: int = 1) -> tuple[FieldsNoise, dict]:
+def sample_fields(masks, variances, basis, rng: np.random.Generator, loading=None) -> np.ndarray:
+    """One draw of the fields B w (h, w, 3) on region masks (R, h, w): w ~ N(0, ``variances``) (R, K) over
+    the columns of ``basis`` (h, w, k) and ``loading`` (K, k, 3; default: independent channels); with white
+    noise of the form's sigma added, a residual window the model would make (simulation-based
+    calibration simulates its images so)."""
+    if loading is None:
+        loading = loadings(int(round((np.sqrt(8 * np.shape(basis)[-1] + 1) - 3) / 2)))
+    variances = np.asarray(variances, np.float64)
+    weights = rng.standard_normal(variances.shape) * np.sqrt(variances)
+    return np.einsum("rhw,hwm,jmc,rj->hwc", np.asarray(masks, np.float64), np.asarray(basis, np.float64),
+                     np.asarray(loading, np.float64), weights)
+
+
+def fit_fields(residuals: np.ndarray, masks: np.ndarray, degree: int = 1,
+               channels: str = "independent") -> tuple[FieldsNoise, dict]:
     """The fields model of residual windows (N, h, w, 3) with region masks (N, R, h, w), by maximum marginal
     likelihood (module docstring), and figures: the correlation area before and after the fields."""
     from scipy.optimize import minimize
@@ -135,25 +219,26 @@ def fit_fields(residuals: np.ndarray, masks: np.ndarray, degree: int = 1) -> tup
     masks = np.asarray(masks, np.float64)
     height, width = residuals.shape[1:3]
     basis = monomials(height, width, degree)
+    loading = loadings(degree, channels)
     groups = len(REGIONS) * (degree + 1)
 
     def model(log_params) -> FieldsNoise:
         return FieldsNoise(float(np.exp(log_params[0])), tuple(np.exp(log_params[1:]).tolist()), degree, 1.0,
-                           (height, width))
+                           (height, width), channels)
 
     statistics = field_statistics(residuals, masks, basis)          # once: the density is then small algebra
 
     def negative(log_params):
         noise = model(log_params)
-        return -float(np.sum(marginal_log_likelihood(statistics, noise.sigma, noise.variances())))
+        return -float(np.sum(marginal_log_likelihood(statistics, noise.sigma, noise.variances(), loading=loading)))
 
     start = np.r_[np.log(np.sqrt(np.mean(residuals ** 2))), np.full(groups, np.log(0.05))]
     best = minimize(negative, start, method="L-BFGS-B", bounds=[(np.log(1e-4), 0.0)] * len(start))
     noise = model(best.x)
-    _, left = field_log_likelihood(residuals, masks, noise.sigma, noise.variances(), basis, left=True)
+    _, left = field_log_likelihood(residuals, masks, noise.sigma, noise.variances(), basis, left=True, loading=loading)
     before, after = correlation_area(residuals), correlation_area(left)
-    noise = FieldsNoise(noise.sigma, noise.taus, degree, 1.0 / after, (height, width))
-    figures = {"sigma": noise.sigma, "taus": list(noise.taus), "degree": degree, "power": noise.power,
-               "correlation_area_window": before, "correlation_area_after_fields": after,
+    noise = FieldsNoise(noise.sigma, noise.taus, degree, 1.0 / after, (height, width), channels)
+    figures = {"sigma": noise.sigma, "taus": list(noise.taus), "degree": degree, "channels": channels,
+               "power": noise.power, "correlation_area_window": before, "correlation_area_after_fields": after,
                "log_likelihood_per_pixel": -float(best.fun) / (residuals.size / 3), "optimiser": str(best.message)}
     return noise, figures

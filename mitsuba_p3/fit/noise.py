@@ -223,10 +223,10 @@ def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, 
     if objects is not None:
         from dataclasses import replace
 
-        from .fields import fit_fields
+        from .fields import FIT_CHANNELS, fit_fields
 
         fields, fields_figures = fit_fields(*field_windows(residuals, regions.astype(bool), np.asarray(objects, bool),
-                                                           sizes[0]))
+                                                           sizes[0]), channels=FIT_CHANNELS)
         model = replace(model, fields=fields.as_dict())
     figures = {"pixels": int(np.prod(residuals.shape[:-1])), "object_pixels": int(regions.sum()),
                "residual_rms": model.gaussian_sigma,

@@ -72,6 +72,7 @@ class LikelihoodConfig:
     spectral: bool = False        # the correlated form: whiten by the fitted spectrum (sigma only reported)
     fields: tuple | None = None   # the shading fields' taus (region-major, degree 0..fields_degree); None: none
     fields_degree: int = 1
+    fields_channels: str = "independent"   # how the fields load on r, g, b (mitsuba_p3.fit.fields.CHANNELS)
 
     def __post_init__(self):
         from ..errors import ConfigError
@@ -96,6 +97,11 @@ class LikelihoodConfig:
 
             if self.spectral or self.outlier > 0 or self.object_outlier is not None:
                 raise ConfigError("the shading fields' form has no outlier weights and no spectrum")
+            from ..fit.fields import CHANNELS
+
+            if self.fields_channels not in CHANNELS:
+                raise ConfigError(f"the shading fields' channels must be one of {', '.join(CHANNELS)}; got "
+                                  f"{self.fields_channels!r}")
             if (len(self.fields) != len(REGIONS) * (self.fields_degree + 1)
                     or not all(np.isfinite(t) and t > 0 for t in self.fields)):
                 raise ConfigError(f"the shading fields need {len(REGIONS) * (self.fields_degree + 1)} positive "
@@ -192,11 +198,13 @@ def fields_masks(renders, objects, empty):
 
 
 def fields_form(config: LikelihoodConfig, height: int, width: int):
-    """(tau^2 per region and monomial (R, k), the monomials (h, w, k)) of the config's shading fields."""
+    """(tau^2 per region and basis column (R, K), the monomials (h, w, k), the columns' channel loadings
+    (K, k, 3)) of the config's shading fields (:mod:`mitsuba_p3.fit.fields`)."""
     from ..fit.fields import FieldsNoise, monomials
 
-    noise = FieldsNoise(config.sigma, config.fields, config.fields_degree, config.power, (height, width))
-    return noise.variances(), monomials(height, width, config.fields_degree)
+    noise = FieldsNoise(config.sigma, config.fields, config.fields_degree, config.power, (height, width),
+                        config.fields_channels)
+    return noise.variances(), monomials(height, width, config.fields_degree), noise.loadings()
 
 
 def fields_log_likelihood(observed, renders, objects, empty, config: LikelihoodConfig):
@@ -206,10 +214,10 @@ def fields_log_likelihood(observed, renders, objects, empty, config: LikelihoodC
 
     from ..fit.fields import field_log_likelihood
 
-    variances, basis = fields_form(config, *renders.shape[-3:-1])
+    variances, basis, loading = fields_form(config, *renders.shape[-3:-1])
     residual = jnp.asarray(observed)[None] - renders
     return config.power * field_log_likelihood(residual, fields_masks(renders, objects, empty), config.sigma,
-                                               variances, basis, xp=jnp)
+                                               variances, basis, xp=jnp, loading=loading)
 
 
 def score(observation: dict, renders, config: LikelihoodConfig, channels: list[Channel] | None = None,

@@ -29,10 +29,11 @@ from .window import OUTSIDE_WINDOW, pixel_of, window_for, window_log_term
 RIDGE_STEP = 0.2
 
 
-class WeightsConditional(NamedTuple):
-    """The material weights' (k_a, k_d, k_s) conditional given the colour, the pose, the class and the
-    shininess: a mixture of trivariate Gaussians (component log weights (C,), means (C, 3), precisions
-    and their Cholesky factors (C, 3, 3), log determinants (C,)), in the weights' natural unit."""
+class MixtureConditional(NamedTuple):
+    """A material conditional that is a mixture of trivariate Gaussians (component log weights (C,), means
+    (C, 3), precisions and their Cholesky factors (C, 3, 3), log determinants (C,)), in natural units: the
+    weights' (k_a, k_d, k_s) given the colour, the pose, the class and the shininess; the colour's given
+    the weights where the noise couples the channels."""
     log_mix: object
     mean: object
     precision: object
@@ -435,8 +436,10 @@ class PosteriorCore:
         return state, colour_ok & weights_ok, loglik, jumped
 
     def _gram(self, bases, observation, tempering, z):
-        """(3, 4, 4) per channel, the tempered precision-weighted inner products of the bases A, D, S and
-        the residual r = I_obs - F: both material conditionals need only these."""
+        """The tempered precision-weighted inner products of the bases A, D, S and the residual
+        r = I_obs - F, each taken in one colour channel: both material conditionals need only these.
+        (3, 4, 4) per channel where the noise keeps the channels apart; (3, 3, 4, 4) [c, c', i, j]
+        where it couples them (shading fields shared across channels, :mod:`mitsuba_p3.fit.fields`)."""
         import jax.numpy as jnp
 
         vectors = jnp.concatenate([bases[..., :3, :], (observation["image"] - bases[..., 3, :])[..., None, :]],
@@ -451,27 +454,36 @@ class PosteriorCore:
         # the Gaussian part of the likelihood (outliers are left to the MH test)
         gram = jnp.einsum("icjc->cij", full)
         if self.config.fields is not None:
-            gram = gram - self._fields_correction(vectors, bases, observation, z)
+            correction = self._fields_correction(vectors, bases, observation, z)    # (3, 3, 4, 4)
+            if self.config.fields_channels == "independent":
+                gram = gram - jnp.einsum("ccij->cij", correction)
+            else:
+                gram = jnp.einsum("cd,cij->cdij", jnp.eye(3, dtype=gram.dtype), gram) - correction
         return gram * precision
 
     def _fields_correction(self, vectors, bases, observation, z):
-        """(3, 4, 4) what the shading fields take off the bases' inner products: under covariance
-        sigma^2 I + B T B' the precision is (I - B (G + sigma^2 T^-1)^-1 B') / sigma^2, so x'Qy is the white
-        x'y / sigma^2 less (B'x)' (G + sigma^2 T^-1)^-1 (B'y) / sigma^2 (:mod:`mitsuba_p3.fit.fields`). The
-        regions are the pose's: its object's pixels and the floor its shadow changes (the materials move
-        neither)."""
+        """(3, 3, 4, 4) [c, c', i, j] what the shading fields take off the inner products of vector i in
+        channel c and vector j in channel c': under covariance sigma^2 I + B T B' the precision is
+        (I - B (G + sigma^2 T^-1)^-1 B') / sigma^2, so x'Qy is the white x'y / sigma^2 less
+        (B'x)' (G + sigma^2 T^-1)^-1 (B'y) / sigma^2 (:mod:`mitsuba_p3.fit.fields`). Zero for c != c' when
+        every field is a single channel's. The regions are the pose's: its object's pixels and the floor
+        its shadow changes (the materials move neither)."""
         import jax.numpy as jnp
 
-        from ..fit.fields import field_statistics
+        from ..fit.fields import column_statistics, field_statistics
 
         height, width = vectors.shape[:2]
         masks = fields_masks(bases[..., 3, :], self.objects(z, observation), observation["empty"])
-        variances, basis = fields_form(self.config, height, width)
-        _, gram, projected, _ = field_statistics(jnp.moveaxis(vectors, -2, 0), masks, basis, xp=jnp)  # (4, R, k, 3)
-        k = gram.shape[-1]
-        inner = gram + (self.config.sigma ** 2 / jnp.asarray(variances, gram.dtype))[..., None] * jnp.eye(k)
-        solved = jnp.linalg.solve(inner[None], projected)                                     # (4, R, k, 3)
-        return jnp.einsum("irkc,jrkc->cij", projected, solved)
+        variances, basis, loading = fields_form(self.config, height, width)
+        statistics = field_statistics(jnp.moveaxis(vectors, -2, 0), masks, basis, xp=jnp)   # b: (4, R, k, 3)
+        _, gram, _, _ = column_statistics(statistics, loading, xp=jnp)                       # (4, R, K, K)
+        loading = jnp.asarray(loading, gram.dtype)
+        # B'x for vector i taken in channel c alone: (4, 3, R, K)
+        columns = jnp.einsum("jmc,irmc->icrj", loading, statistics[2])
+        size = gram.shape[-1]
+        inner = gram[0] + (self.config.sigma ** 2 / jnp.asarray(variances, gram.dtype))[..., None] * jnp.eye(size)
+        solved = jnp.linalg.solve(inner[None, None], columns[..., None])[..., 0]            # (4, 3, R, K)
+        return jnp.einsum("icrk,jdrk->cdij", columns, solved)
 
     def _kind_jump(self, key, state, bases, gram, observation, target):
         """The material kind's jump: a new shininess drawn from its prior (a mixture of the fitted
@@ -532,6 +544,8 @@ class PosteriorCore:
         # per channel, I = c * slope + offset with slope = k_a A + k_d D and offset = k_s S + F
         slope = jnp.stack([p["ambient"], p["diffuse"], 0.0 * p["specular"]])
         offset = jnp.stack([0.0, 0.0, p["specular"]])
+        if gram.ndim == 4:
+            return self._coupled_colour_move(key, state, bases, gram, observation, target, slope, offset)
         precision = jnp.einsum("i,cij,j->c", slope, gram[:, :3, :3], slope)       # sum slope^2 / sigma^2
         linear = slope @ gram[:, :3, 3].T - jnp.einsum("i,cij,j->c", slope, gram[:, :3, :3], offset)
         means, variances = jnp.asarray(gmm.means), jnp.asarray(gmm.variances)       # (K, 3)
@@ -555,6 +569,47 @@ class PosteriorCore:
         return self._independence_mh(k_accept, state, new_position, bases, log_q(current) - log_q(proposal),
                                      observation, target)
 
+    def _coupled_colour_move(self, key, state, bases, gram, observation, target, slope, offset):
+        """:meth:`_colour_move` where the noise couples the channels (``gram`` (3, 3, 4, 4)): each GMM
+        component's conditional is then a full trivariate Gaussian (:meth:`_coupled_colour_conditional`)."""
+        import jax
+        import jax.numpy as jnp
+
+        position = state.position
+        gmm = self.prior.gmms["colour"]
+        cols = slice(SLICES["colour"].start, SLICES["colour"].stop)
+        conditional = self._coupled_colour_conditional(gram, slope, offset)
+        k_draw, k_accept = jax.random.split(key)
+        proposal = conditional.draw(k_draw)
+        current = jnp.asarray(gmm.mean) + jnp.asarray(gmm.std) * position[cols]
+        new_position = position.at[cols].set((proposal - gmm.mean) / gmm.std)
+        return self._independence_mh(k_accept, state, new_position, bases,
+                                     conditional.log_q(current) - conditional.log_q(proposal), observation, target)
+
+    def _coupled_colour_conditional(self, gram, slope, offset):
+        """The colour's conditional given the weights under coupled channels (``gram`` (3, 3, 4, 4)), the
+        render I = c * slope + offset per channel: a :class:`MixtureConditional`, one full trivariate
+        Gaussian per GMM component. Exact where the colour stays in [0, 1] (the renderer clips it; the MH
+        test corrects the rest)."""
+        import jax
+        import jax.numpy as jnp
+
+        gmm = self.prior.gmms["colour"]
+        quadratic = jnp.einsum("i,cdij,j->cd", slope, gram[:, :, :3, :3], slope)                # (3, 3)
+        linear = (jnp.einsum("i,cdi->c", slope, gram[:, :, :3, 3])
+                  - jnp.einsum("i,cdij,j->c", slope, gram[:, :, :3, :3], offset))
+        means, variances = jnp.asarray(gmm.means), jnp.asarray(gmm.variances)                   # (K, 3)
+        precision = jax.vmap(jnp.diag)(1.0 / variances) + quadratic + 1e-9 * jnp.eye(3)        # (K, 3, 3)
+        h = means / variances + linear
+        chol = jnp.linalg.cholesky(precision)
+        mean = jax.vmap(lambda c, v: jax.scipy.linalg.cho_solve((c, True), v))(chol, h)
+        log_det = 2 * jnp.sum(jnp.log(jax.vmap(jnp.diag)(chol)), axis=1)
+        log_evidence = (-0.5 * jnp.sum(jnp.log(variances), axis=1) - 0.5 * log_det + 0.5 * jnp.sum(h * mean, axis=1)
+                        - 0.5 * jnp.sum(means * means / variances, axis=1))
+        log_weights = jax.nn.log_softmax(jnp.log(jnp.asarray(gmm.weights)) + log_evidence)
+
+        return MixtureConditional(log_weights, mean, precision, chol, log_det)
+
     def _weight_coordinates(self):
         """The weights (k_a, k_d, k_s): their coordinates in z and the affine map's loc and std (3,)."""
         import jax.numpy as jnp
@@ -563,7 +618,7 @@ class PosteriorCore:
         return (jnp.array([SLICES[n].start for n in ("ambient", "diffuse", "specular")]),
                 jnp.array([g.mean[0] for g in gmms]), jnp.array([g.std[0] for g in gmms]))
 
-    def _weights_conditional(self, gram, colour) -> "WeightsConditional":
+    def _weights_conditional(self, gram, colour) -> "MixtureConditional":
         """The weights' conditional given the colour and the bases whose ``gram`` is given: a mixture of
         8 trivariate Gaussians (their priors are independent 2-component GMMs)."""
         import itertools
@@ -579,8 +634,12 @@ class PosteriorCore:
         var = jnp.array([[g.variances[i, 0] for g, i in zip(gmms, c)] for c in combos])
         # per channel the image is w . (k_a A, k_d D, k_s S) + F with w = (c, c, 1)
         w = jnp.stack([colour, colour, jnp.ones(3)], axis=-1)                      # (3 channels, 3)
-        lam = jnp.einsum("ci,cij,cj->ij", w, gram[:, :3, :3], w) + 1e-9 * jnp.eye(3)
-        eta = jnp.einsum("ci,ci->i", w, gram[:, :3, 3])
+        if gram.ndim == 4:          # channels coupled by the noise: [c, c', i, j]
+            lam = jnp.einsum("ci,cdij,dj->ij", w, gram[:, :, :3, :3], w) + 1e-9 * jnp.eye(3)
+            eta = jnp.einsum("ci,cdi->i", w, gram[:, :, :3, 3])
+        else:
+            lam = jnp.einsum("ci,cij,cj->ij", w, gram[:, :3, :3], w) + 1e-9 * jnp.eye(3)
+            eta = jnp.einsum("ci,ci->i", w, gram[:, :3, 3])
         precision = jax.vmap(jnp.diag)(1.0 / var) + lam                             # (C, 3, 3)
         h = mu / var + eta
         chol = jnp.linalg.cholesky(precision)
@@ -588,7 +647,7 @@ class PosteriorCore:
         log_det_p = 2 * jnp.sum(jnp.log(jax.vmap(jnp.diag)(chol)), axis=1)
         log_evidence = (-0.5 * jnp.sum(jnp.log(var), axis=1) - 0.5 * log_det_p + 0.5 * jnp.sum(h * mean, axis=1)
                         - 0.5 * jnp.sum(mu * mu / var, axis=1))
-        return WeightsConditional(jax.nn.log_softmax(log_w + log_evidence), mean, precision, chol, log_det_p)
+        return MixtureConditional(jax.nn.log_softmax(log_w + log_evidence), mean, precision, chol, log_det_p)
 
     def _weights_move(self, key, state, bases, gram, observation, target):
         """The weights' conditional given the colour (:meth:`_weights_conditional`): an independence

@@ -197,7 +197,8 @@ def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | No
     - ``spectral``: the same stage's correlated Gaussian field (the residual windows' power spectrum and
       the power of what correlation whitening leaves), renders with hard shadows;
     - ``fields``: the same stage's shading fields on the hypothesis's object and shadow, marginalised
-      (:mod:`mitsuba_p3.fit.fields`: sigma, the fields' scales, the power of what they leave), hard shadows.
+      (:mod:`mitsuba_p3.fit.fields`: sigma, the fields' scales and channel loading, the power of what they
+      leave), hard shadows.
     """
     from ..errors import ConfigError
 
@@ -228,7 +229,7 @@ def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | No
 
         fields = FieldsNoise.from_dict(model.fields)
         return LikelihoodConfig(kind=kind, sigma=fields.sigma, power=fields.power, shadows=model.shadows,
-                                fields=fields.taus, fields_degree=fields.degree)
+                                fields=fields.taus, fields_degree=fields.degree, fields_channels=fields.channels)
     if model.gaussian_sigma is None:
         raise ConfigError(f"{fitted.root}/noise.json predates the Gaussian noise form; refit it with "
                           f"mitsuba-p3 fit DATASET --out {fitted.root} --stages noise")

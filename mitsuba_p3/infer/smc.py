@@ -319,10 +319,12 @@ def outside_window(config: SMCConfig) -> float:
 
 def sample_smc(core, observation, config: SMCConfig | None = None,
                progress: Callable[[str, int, int], None] | None = None,
-               start: Particles | None = None) -> SMCRun:
+               start: Particles | None = None, window: tuple | None = None) -> SMCRun:
     """Tempered SMC of every hypothesis of one image (see the module docstring). With ``start``,
     P3's final particles of the same image and sampler settings, ``core`` being NP3's, the run
-    is the bridge's instead: from P3's posterior to NP3's, on the window P3 scored."""
+    is the bridge's instead: from P3's posterior to NP3's, on the window P3 scored. ``window``
+    (top, left, height, width): score that window of the image rather than the one its footprint
+    picks (SBC of the shading fields' form, whose simulated fields live on a chosen window)."""
     import jax
 
     from .bridge import bridge
@@ -345,7 +347,9 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
         rows, rounds = bridge(core, observation, start.rows, config, key, progress), 1
         pooled = pooled_evidence(rows, count)
     else:
-        if config.window and "window" not in observation:
+        if window is not None and "window" not in observation:
+            observation = core.observe(image, tuple(window), outside_window(config))
+        elif config.window and "window" not in observation:
             window = core.window_for(image, tuple(config.window))
             observation = core.observe(image, window, outside_window(config)) if window else observation
         rows, pooled, rounds = _rounds(core, observation, image, space, config, rng, key, progress)
