@@ -40,6 +40,23 @@ class MixtureConditional(NamedTuple):
     chol: object
     log_det_p: object
 
+    @classmethod
+    def of(cls, log_w, mu, var, lam, eta) -> "MixtureConditional":
+        """The conditional of x under a prior mixture of diagonal Gaussians (log weights (C,), means and
+        variances (C, 3)) times a Gaussian likelihood exp(-x'lam x / 2 + eta'x) (lam (3, 3), eta (3,)):
+        each component's posterior, and its weight by the component's evidence."""
+        import jax
+        import jax.numpy as jnp
+
+        precision = jax.vmap(jnp.diag)(1.0 / var) + lam                             # (C, 3, 3)
+        h = mu / var + eta
+        chol = jnp.linalg.cholesky(precision)
+        mean = jax.vmap(lambda c, v: jax.scipy.linalg.cho_solve((c, True), v))(chol, h)
+        log_det_p = 2 * jnp.sum(jnp.log(jax.vmap(jnp.diag)(chol)), axis=1)
+        log_evidence = (-0.5 * jnp.sum(jnp.log(var), axis=1) - 0.5 * log_det_p + 0.5 * jnp.sum(h * mean, axis=1)
+                        - 0.5 * jnp.sum(mu * mu / var, axis=1))
+        return cls(jax.nn.log_softmax(log_w + log_evidence), mean, precision, chol, log_det_p)
+
     def log_q(self, w):
         import jax
         import jax.numpy as jnp
@@ -591,24 +608,14 @@ class PosteriorCore:
         render I = c * slope + offset per channel: a :class:`MixtureConditional`, one full trivariate
         Gaussian per GMM component. Exact where the colour stays in [0, 1] (the renderer clips it; the MH
         test corrects the rest)."""
-        import jax
         import jax.numpy as jnp
 
         gmm = self.prior.gmms["colour"]
         quadratic = jnp.einsum("i,cdij,j->cd", slope, gram[:, :, :3, :3], slope)                # (3, 3)
         linear = (jnp.einsum("i,cdi->c", slope, gram[:, :, :3, 3])
                   - jnp.einsum("i,cdij,j->c", slope, gram[:, :, :3, :3], offset))
-        means, variances = jnp.asarray(gmm.means), jnp.asarray(gmm.variances)                   # (K, 3)
-        precision = jax.vmap(jnp.diag)(1.0 / variances) + quadratic + 1e-9 * jnp.eye(3)        # (K, 3, 3)
-        h = means / variances + linear
-        chol = jnp.linalg.cholesky(precision)
-        mean = jax.vmap(lambda c, v: jax.scipy.linalg.cho_solve((c, True), v))(chol, h)
-        log_det = 2 * jnp.sum(jnp.log(jax.vmap(jnp.diag)(chol)), axis=1)
-        log_evidence = (-0.5 * jnp.sum(jnp.log(variances), axis=1) - 0.5 * log_det + 0.5 * jnp.sum(h * mean, axis=1)
-                        - 0.5 * jnp.sum(means * means / variances, axis=1))
-        log_weights = jax.nn.log_softmax(jnp.log(jnp.asarray(gmm.weights)) + log_evidence)
-
-        return MixtureConditional(log_weights, mean, precision, chol, log_det)
+        return MixtureConditional.of(jnp.log(jnp.asarray(gmm.weights)), jnp.asarray(gmm.means),
+                                     jnp.asarray(gmm.variances), quadratic + 1e-9 * jnp.eye(3), linear)
 
     def _weight_coordinates(self):
         """The weights (k_a, k_d, k_s): their coordinates in z and the affine map's loc and std (3,)."""
@@ -623,7 +630,6 @@ class PosteriorCore:
         8 trivariate Gaussians (their priors are independent 2-component GMMs)."""
         import itertools
 
-        import jax
         import jax.numpy as jnp
 
         gmms = [self.prior.gmms[n] for n in ("ambient", "diffuse", "specular")]
@@ -640,14 +646,7 @@ class PosteriorCore:
         else:
             lam = jnp.einsum("ci,cij,cj->ij", w, gram[:, :3, :3], w) + 1e-9 * jnp.eye(3)
             eta = jnp.einsum("ci,ci->i", w, gram[:, :3, 3])
-        precision = jax.vmap(jnp.diag)(1.0 / var) + lam                             # (C, 3, 3)
-        h = mu / var + eta
-        chol = jnp.linalg.cholesky(precision)
-        mean = jax.vmap(lambda c, v: jax.scipy.linalg.cho_solve((c, True), v))(chol, h)
-        log_det_p = 2 * jnp.sum(jnp.log(jax.vmap(jnp.diag)(chol)), axis=1)
-        log_evidence = (-0.5 * jnp.sum(jnp.log(var), axis=1) - 0.5 * log_det_p + 0.5 * jnp.sum(h * mean, axis=1)
-                        - 0.5 * jnp.sum(mu * mu / var, axis=1))
-        return MixtureConditional(jax.nn.log_softmax(log_w + log_evidence), mean, precision, chol, log_det_p)
+        return MixtureConditional.of(log_w, mu, var, lam, eta)
 
     def _weights_move(self, key, state, bases, gram, observation, target):
         """The weights' conditional given the colour (:meth:`_weights_conditional`): an independence
