@@ -24,17 +24,18 @@ Each region and polynomial degree has its own tau. Integrating w out (Woodbury),
 with G_g = B_g'B_g and b_g = B_g'r for region g (the regions do not overlap, so the
 regions' blocks are independent).
 
+A field changes the object's shading smoothly; it cannot move the outline (it lives on
+the rendered mask) and an absent object has no mask to carry one, so the outline and the
+object's presence keep their evidence while a wrong shade costs little. The log-determinant is the fields' Occam factor: a larger
+mask has more freedom and pays for it.
+
 **Across the colour channels** (``channels``) the fields are ``independent`` (a field per
 channel: any change of the object's colour is a constant field, so the form forgives a
 wrong colour nearly as much as a wrong shade), ``achromatic`` (one field shared by the three
 channels: it brightens or darkens, it cannot change a hue), or ``mixed`` (the constant
 shared, the higher degrees per channel). A basis column is then a region mask times a
 monomial times a channel loading (:func:`loadings`), and the Woodbury solve runs over the
-columns of all three channels at once. A field changes the object's shading smoothly; it
-cannot move the outline (it lives on the rendered mask) and an absent object has no
-mask to carry one, so the outline and the object's presence keep their evidence while
-a wrong shade costs little. The log-determinant is the fields' Occam factor: a larger
-mask has more freedom and pays for it.
+columns of all three channels at once.
 
 **The fit.** sigma and the taus maximise the marginal likelihood of the train split's
 residual windows at the true geometry (:func:`fit_fields`; scipy's L-BFGS over their
@@ -93,6 +94,11 @@ class FieldsNoise:
 def _degrees(degree: int) -> np.ndarray:
     """(k,) the total degree of each monomial of :func:`monomials`."""
     return np.array([total for total in range(degree + 1) for _ in range(total + 1)])
+
+
+def _degree_of(monomial_count: int) -> int:
+    """The highest degree d of :func:`monomials` that make ``monomial_count`` = (d + 1)(d + 2) / 2 of them."""
+    return int(round((np.sqrt(8 * monomial_count + 1) - 3) / 2))
 
 
 def loadings(degree: int, channels: str = "independent") -> np.ndarray:
@@ -165,7 +171,7 @@ def marginal_log_likelihood(statistics: tuple, sigma: float, variances, xp=np, s
     posterior means (..., R, K)."""
     gram = statistics[1]
     if loading is None:
-        loading = loadings(int(round((np.sqrt(8 * gram.shape[-1] + 1) - 3) / 2)))
+        loading = loadings(_degree_of(gram.shape[-1]))
     squares, gram, projected, count = column_statistics(statistics, loading, xp)
     size = gram.shape[-1]
     eye = xp.eye(size, dtype=gram.dtype)
@@ -184,7 +190,7 @@ def field_log_likelihood(residual, masks, sigma: float, variances, basis, xp=np,
     independent channels) (module docstring) -> (...,). With ``left``, also the residual the fields'
     posterior mean leaves (..., h, w, 3)."""
     if loading is None:
-        loading = loadings(int(round((np.sqrt(8 * np.shape(basis)[-1] + 1) - 3) / 2)))
+        loading = loadings(_degree_of(np.shape(basis)[-1]))
     statistics = field_statistics(residual, masks, basis, xp)
     value, means = marginal_log_likelihood(statistics, sigma, variances, xp, solved=True, loading=loading)
     if not left:
@@ -200,7 +206,7 @@ def sample_fields(masks, variances, basis, rng: np.random.Generator, loading=Non
     noise of the form's sigma added, a residual window the model would make (simulation-based
     calibration simulates its images so)."""
     if loading is None:
-        loading = loadings(int(round((np.sqrt(8 * np.shape(basis)[-1] + 1) - 3) / 2)))
+        loading = loadings(_degree_of(np.shape(basis)[-1]))
     variances = np.asarray(variances, np.float64)
     weights = rng.standard_normal(variances.shape) * np.sqrt(variances)
     return np.einsum("rhw,hwm,jmc,rj->hwc", np.asarray(masks, np.float64), np.asarray(basis, np.float64),
