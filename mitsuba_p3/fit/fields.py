@@ -26,8 +26,9 @@ regions' blocks are independent).
 
 A field changes the object's shading smoothly; it cannot move the outline (it lives on
 the rendered mask) and an absent object has no mask to carry one, so the outline and the
-object's presence keep their evidence while a wrong shade costs little. The log-determinant is the fields' Occam factor: a larger
-mask has more freedom and pays for it.
+object's presence keep their evidence while a wrong shade costs little. The
+log-determinant is the fields' Occam factor: a larger mask has more freedom and pays for
+it.
 
 **Across the colour channels** (``channels``) the fields are ``independent`` (a field per
 channel: any change of the object's colour is a constant field, so the form forgives a
