@@ -493,12 +493,12 @@ class PosteriorCore:
         masks = fields_masks(bases[..., 3, :], self.objects(z, observation), observation["empty"])
         variances, basis, loading = fields_form(self.config, height, width)
         statistics = field_statistics(jnp.moveaxis(vectors, -2, 0), masks, basis, xp=jnp)   # b: (4, R, k, 3)
-        _, gram, _, _ = column_statistics(statistics, loading, xp=jnp)                       # (4, R, K, K)
+        _, gram, _, _ = column_statistics(statistics, loading, xp=jnp)                       # (R, K, K)
         loading = jnp.asarray(loading, gram.dtype)
         # B'x for vector i taken in channel c alone: (4, 3, R, K)
         columns = jnp.einsum("jmc,irmc->icrj", loading, statistics[2])
         size = gram.shape[-1]
-        inner = gram[0] + (self.config.sigma ** 2 / jnp.asarray(variances, gram.dtype))[..., None] * jnp.eye(size)
+        inner = gram + (self.config.sigma ** 2 / jnp.asarray(variances, gram.dtype))[..., None] * jnp.eye(size)
         solved = jnp.linalg.solve(inner[None, None], columns[..., None])[..., 0]            # (4, 3, R, K)
         return jnp.einsum("icrk,jdrk->cdij", columns, solved)
 
