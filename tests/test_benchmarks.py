@@ -139,6 +139,29 @@ def test_dark_is_darker_and_room_and_studio_differ(tiny_fsclvr, tmp_path):
     assert np.abs(lit - plain).mean() > 0.02 and "principled" in (studio / "scene.xml").read_text()
 
 
+def test_an_edited_world_makes_a_benchmark_of_its_own(tiny_fsclvr, tmp_path):
+    """``world``: an edited copy of a variant's XML, rendered with the variant's classes and poses; the
+    files it names are found beside the shipped worlds; a folder started with one world refuses another."""
+    from mitsuba_p3.benchmarks.generate import WORLDS, _copy_world
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    edited = elsewhere / "bright.xml"
+    edited.write_text((WORLDS / "fsclvr.xml").read_text().replace("<integrator", "<!-- edited --><integrator", 1))
+    out = generate("fsclvr", tmp_path / "bright", seed=5, world=edited, **TINY).parent
+    labels = [json.loads((folder / "labels.json").read_text())["images"] for folder in (tiny_fsclvr, out)]
+    assert [(a["class"], a["pose"]) for a in labels[0]] == [(b["class"], b["pose"]) for b in labels[1]]
+    assert "<!-- edited -->" in (out / "scene.xml").read_text()
+    with pytest.raises(MitsubaP3Error, match="has changed"):
+        generate("fsclvr", out, seed=5, **TINY)         # the shipped world into the edited one's folder
+    with pytest.raises(MitsubaP3Error, match="no such world"):
+        generate("fsclvr", tmp_path / "none", seed=5, world=tmp_path / "missing.xml", **TINY)
+    meshes = elsewhere / "ood.xml"                       # names meshes/*.ply, which lie beside the shipped one
+    meshes.write_text((WORLDS / "ood.xml").read_text())
+    _copy_world(meshes, tmp_path / "copied", meshes.read_text())
+    assert (tmp_path / "copied" / "meshes" / "mug.ply").is_file()
+
+
 def test_object_is_where_its_label_says(tiny_fsclvr, mi):
     """The path-traced object covers the pixels the Phong model puts it at (same camera and pose)."""
     from mitsuba_p3.render import make_renderer

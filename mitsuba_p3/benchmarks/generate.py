@@ -2,7 +2,9 @@
 
 The world of each variant (camera, floor, walls, area lights, object materials
 and shape groups) is the Mitsuba XML ``scenes/benchmarks/VARIANT.xml``; editing
-it changes the benchmark. The generator only sets the XML's ``<default>`` knobs
+it changes the benchmark, and an edited copy passed as ``world`` makes a new one
+with the variant's classes and poses (files it names are looked for beside it,
+then beside the shipped worlds). The generator only sets the XML's ``<default>`` knobs
 for each image (object, material, colour, pose, light positions jittered by
 ``light_jitter``) and renders. Labels are planned first from the seed
 (:func:`.protocol.plan`), written to ``labels.json``, and every image is written
@@ -122,9 +124,11 @@ def _world_text(world: Path, height: int, width: int, spp: int) -> str:
 def _copy_world(world: Path, out: Path, text: str) -> None:
     """Write the world XML into the data set with the files it references."""
     for relative in re.findall(r'<string name="filename" value="([^"$]+)"', text):
-        source, target = world.parent / relative, out / relative
-        if not source.is_file():
-            raise BenchmarkError(f"{world}: references {relative}, which does not exist")
+        target = out / relative
+        source = next((folder / relative for folder in (world.parent, WORLDS) if (folder / relative).is_file()),
+                      None)
+        if source is None:
+            raise BenchmarkError(f"{world}: references {relative}, which is neither beside it nor in {WORLDS}")
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(source, target)
     atomic_write(out / SCENE_FILE, text)
@@ -142,12 +146,14 @@ def _image_is_done(path: Path, height: int, width: int) -> bool:
 
 def generate(variant: str, out: str | Path, seed: int = 0, size: str = "full",
              resolution: tuple[int, int] | None = None, spp: int | None = None,
-             progress: Callable[[int, int], None] | None = None) -> Path:
+             progress: Callable[[int, int], None] | None = None, world: str | Path | None = None) -> Path:
     """Render benchmark ``variant`` into folder ``out``; returns the labels file.
 
-    Resumes a stopped run: images already on disk at the right resolution are
-    kept. Refuses a folder that holds a different benchmark (other variant,
-    seed, size or resolution). ``progress(done, total)`` is called after each image.
+    ``world``: a Mitsuba XML to render instead of the variant's own (an edited copy of one; the
+    variant still chooses the classes, poses and split sizes). Resumes a stopped run: images already
+    on disk at the right resolution are kept. Refuses a folder that holds a different benchmark
+    (other variant, seed, size, resolution or world). ``progress(done, total)`` is called after each
+    image.
     """
     from ..backend import mitsuba
     from ..images import write_png
@@ -161,7 +167,9 @@ def generate(variant: str, out: str | Path, seed: int = 0, size: str = "full",
     refuse_inside_protected(out, "mitsuba-p3 benchmark generate")   # out itself may be this benchmark, resumed
     if (out / "model.json").is_file():
         raise BenchmarkError(f"{out} is a fitted model; choose a new --out folder for the benchmark")
-    world = world_file(variant)
+    world = world_file(variant) if world is None else Path(world)
+    if not world.is_file():
+        raise BenchmarkError(f"{world}: no such world XML")
     defaults = read_defaults(world)
     spp = spp or (SMALL_SPP if size == "small" else int(defaults.get("spp", 128)))
     if height < 8 or width < 8 or spp < 1:

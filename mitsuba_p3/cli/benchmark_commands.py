@@ -12,14 +12,17 @@ from .app import benchmark_app, parse_resolution, progress_bar
 
 @benchmark_app.command("generate")
 def benchmark_generate(
-    variant: str = typer.Argument(..., help="fsclvr, dark, room or ood."),
+    variant: str = typer.Argument(..., help="fsclvr, dark, room, ood or studio."),
     out: Path = typer.Option(..., "--out", help="Data-set folder to write (resumes if it exists)."),
     seed: int = typer.Option(0, help="Seed: the same seed gives the same labels and images."),
     size: str = typer.Option("full", help="full (BENCHMARK.md counts) or small (built-in example)."),
     resolution: Optional[str] = typer.Option(None, help="HxW (default: 480x640 full, 120x160 small)."),
     spp: Optional[int] = typer.Option(None, help="Samples per pixel (default: the world XML's; 32 small)."),
+    world: Optional[Path] = typer.Option(None, help="A world XML to render instead of the variant's (an "
+                                         "edited copy of scenes/benchmarks/VARIANT.xml); the variant keeps "
+                                         "choosing classes and poses."),
 ) -> None:
-    """Render a benchmark with Mitsuba's path tracer (world: scenes/benchmarks/VARIANT.xml)."""
+    """Render a benchmark with Mitsuba's path tracer (world: scenes/benchmarks/VARIANT.xml, or --world)."""
     import time
 
     from ..benchmarks.generate import generate
@@ -36,7 +39,8 @@ def benchmark_generate(
 
     with bar:
         labels = generate(variant, out, seed=seed, size=size,
-                          resolution=(height, width) if height else None, spp=spp, progress=track)
+                          resolution=(height, width) if height else None, spp=spp, progress=track,
+                          world=world)
     rendered = counts["done"] - counts["first"]
     seconds = time.perf_counter() - start
     per_image = f", {seconds / rendered:.2f} s/image" if rendered else ""
