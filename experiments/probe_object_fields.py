@@ -86,17 +86,26 @@ def main() -> None:
 
     def window_parts(shot, params):
         image = dataset.image(shot)
-        top, left, h, w = core.window_for(image, SCORING_WINDOW) or (0, 0, *dataset.resolution)
+        window = core.window_for(image, SCORING_WINDOW)
+        if window is None:            # no footprint found: nothing to probe in this image
+            return None
+        top, left, h, w = window
         crop = (slice(top, top + h), slice(left, left + w))
         render = renderer.render(params)[crop]
         masks = masks_of(core, params, render, empty_full[crop], crop)
         return image[crop], render, masks if args.regions == "split" else np.stack([masks.sum(0), 0 * masks[0]])
 
-    cases = []
+    cases, missed = [], []
     for n, shot in enumerate(shots):
         truth = shot_params(shot, fitted.materials)
-        image, render, masks = window_parts(shot, truth)
+        parts = window_parts(shot, truth)
+        if parts is None:
+            missed.append(f"{shot.class_name}/{shot.index}")
+            continue
+        image, render, masks = parts
         cases.append((shot, truth, image - render, masks))
+    if missed:
+        print(json.dumps({"no footprint window (skipped)": missed}), flush=True)
     fit_half, probe_half = cases[0::2], cases[1::2]
 
     # maximum marginal likelihood of sigma and the taus on the first half
@@ -147,7 +156,8 @@ def main() -> None:
                          "images where a wrong shape beats the truth": int(np.sum(wrong < 0)),
                          "images where absent is cheaper than 2 mm": int(np.sum(shifts[:, 4] < shifts[:, 1])),
                          "images where absent is cheaper than 10 mm": int(np.sum(shifts[:, 4] < shifts[:, 3]))}
-    print(json.dumps({"dataset": args.dataset, "probed": len(probe_half), "summary": summary}, indent=1))
+    print(json.dumps({"dataset": args.dataset, "probed": len(probe_half), "no_footprint_window": len(missed),
+                      "summary": summary}, indent=1))
 
 
 if __name__ == "__main__":
