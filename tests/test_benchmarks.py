@@ -162,6 +162,19 @@ def test_an_edited_world_makes_a_benchmark_of_its_own(tiny_fsclvr, tmp_path):
     assert (tmp_path / "copied" / "meshes" / "mug.ply").is_file()
 
 
+def test_tone_curves():
+    """``none`` leaves linear light as it is; ``aces`` is monotone, maps 0 to 0, stays in [0, 1] and
+    rolls off instead of clipping; an unknown curve is refused."""
+    from mitsuba_p3.benchmarks.generate import tone_map
+
+    x = np.linspace(0.0, 4.0, 401)
+    np.testing.assert_array_equal(tone_map(x, "none"), x)
+    y = tone_map(x, "aces")
+    assert y[0] == 0.0 and np.all(np.diff(y) > 0) and y.max() < 1.0 and y[100] < 0.9   # 1.0 -> below white
+    with pytest.raises(MitsubaP3Error, match="tone_curve"):
+        tone_map(x, "sepia")
+
+
 def test_object_is_where_its_label_says(tiny_fsclvr, mi):
     """The path-traced object covers the pixels the Phong model puts it at (same camera and pose)."""
     from mitsuba_p3.render import make_renderer

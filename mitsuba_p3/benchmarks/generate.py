@@ -6,7 +6,8 @@ it changes the benchmark, and an edited copy passed as ``world`` makes a new one
 with the variant's classes and poses (files it names are looked for beside it,
 then beside the shipped worlds). The generator only sets the XML's ``<default>`` knobs
 for each image (object, material, colour, pose, light positions jittered by
-``light_jitter``) and renders. Labels are planned first from the seed
+``light_jitter``) and renders; a world's ``tone_curve`` knob chooses the camera's response
+(:func:`tone_map`). Labels are planned first from the seed
 (:func:`.protocol.plan`), written to ``labels.json``, and every image is written
 atomically, so a killed generation resumes where it stopped.
 """
@@ -55,6 +56,24 @@ def srgb_encode(linear: np.ndarray) -> np.ndarray:
     """Linear radiance -> display sRGB in [0, 1] (the standard sRGB transfer curve)."""
     x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+TONE_CURVES = ("none", "aces")
+
+
+def tone_map(linear: np.ndarray, curve: str = "none") -> np.ndarray:
+    """A camera's response to linear radiance, before the sRGB encoding: ``none`` clips at 1 (what the
+    Phong model assumes); ``aces`` is the filmic curve of film and of Blender's and game engines'
+    defaults (Narkowicz's 2015 fit of ACES, exposure 0.6), which lifts the shadows and rolls highlights
+    off instead of clipping them: an image pipeline other than the project's own. A world chooses it with
+    ``<default name="tone_curve" value="aces"/>``."""
+    x = np.asarray(linear, dtype=np.float64)
+    if curve == "none":
+        return x
+    if curve == "aces":
+        x = 0.6 * np.maximum(x, 0.0)
+        return np.clip(x * (2.51 * x + 0.03) / (x * (2.43 * x + 0.59) + 0.14), 0.0, 1.0)
+    raise BenchmarkError(f"tone_curve {curve!r}: choose one of {', '.join(TONE_CURVES)}")
 
 
 def srgb_decode(display: np.ndarray) -> np.ndarray:
@@ -172,6 +191,8 @@ def generate(variant: str, out: str | Path, seed: int = 0, size: str = "full",
         raise BenchmarkError(f"{world}: no such world XML")
     defaults = read_defaults(world)
     spp = spp or (SMALL_SPP if size == "small" else int(defaults.get("spp", 128)))
+    curve = defaults.get("tone_curve", "none")
+    tone_map(np.zeros(1), curve)                                   # an unknown curve fails before any render
     if height < 8 or width < 8 or spp < 1:
         raise BenchmarkError(f"resolution {height}x{width} and spp {spp} are too small")
     images = plan(variant, seed, size)
@@ -207,7 +228,7 @@ def generate(variant: str, out: str | Path, seed: int = 0, size: str = "full",
         overrides.update(width=str(width), height=str(height), spp=str(spp))
         scene = mi.load_file(str(out / SCENE_FILE), parallel=False, **overrides)
         linear = np.asarray(mi.render(scene, seed=image.image_seed), dtype=np.float32)
-        write_png(out / image.file, srgb_encode(linear[..., :3]))
+        write_png(out / image.file, srgb_encode(tone_map(linear[..., :3], curve)))
         done += 1
         if progress:
             progress(done, len(images))
