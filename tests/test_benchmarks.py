@@ -152,8 +152,13 @@ def test_an_edited_world_makes_a_benchmark_of_its_own(tiny_fsclvr, tmp_path):
     labels = [json.loads((folder / "labels.json").read_text())["images"] for folder in (tiny_fsclvr, out)]
     assert [(a["class"], a["pose"]) for a in labels[0]] == [(b["class"], b["pose"]) for b in labels[1]]
     assert "<!-- edited -->" in (out / "scene.xml").read_text()
-    with pytest.raises(MitsubaP3Error, match="has changed"):
+    assert json.loads((out / "labels.json").read_text())["world"] == "bright.xml"
+    assert "world" not in json.loads((tiny_fsclvr / "labels.json").read_text())
+    with pytest.raises(MitsubaP3Error, match="different benchmark"):
         generate("fsclvr", out, seed=5, **TINY)         # the shipped world into the edited one's folder
+    edited.write_text(edited.read_text().replace("<!-- edited -->", "<!-- edited again -->"))
+    with pytest.raises(MitsubaP3Error, match="has changed"):
+        generate("fsclvr", out, seed=5, world=edited, **TINY)   # the same world file, edited since
     with pytest.raises(MitsubaP3Error, match="no such world"):
         generate("fsclvr", tmp_path / "none", seed=5, world=tmp_path / "missing.xml", **TINY)
     meshes = elsewhere / "ood.xml"                       # names meshes/*.ply, which lie beside the shipped one

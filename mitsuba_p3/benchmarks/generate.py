@@ -62,8 +62,8 @@ TONE_CURVES = ("none", "aces")
 
 
 def tone_map(linear: np.ndarray, curve: str = "none") -> np.ndarray:
-    """A camera's response to linear radiance, before the sRGB encoding: ``none`` clips at 1 (what the
-    Phong model assumes); ``aces`` is the filmic curve of film and of Blender's and game engines'
+    """A camera's response to linear radiance, before the sRGB encoding: ``none`` leaves it to the
+    encoding, which clips at 1 (what the Phong model assumes); ``aces`` is the filmic curve of film and of Blender's and game engines'
     defaults (Narkowicz's 2015 fit of ACES, exposure 0.6), which lifts the shadows and rolls highlights
     off instead of clipping them: an image pipeline other than the project's own. A world chooses it with
     ``<default name="tone_curve" value="aces"/>``."""
@@ -197,7 +197,8 @@ def generate(variant: str, out: str | Path, seed: int = 0, size: str = "full",
         raise BenchmarkError(f"resolution {height}x{width} and spp {spp} are too small")
     images = plan(variant, seed, size)
     header = {"format": FORMAT, "version": FORMAT_VERSION, "variant": variant, "seed": seed, "size": size,
-              "resolution": [height, width], "spp": spp, "scene": SCENE_FILE}
+              "resolution": [height, width], "spp": spp, "scene": SCENE_FILE,
+              **({} if world == world_file(variant) else {"world": world.name})}
     labels = {**header, "images": [label_of(im, image_overrides(im, defaults)[1]) for im in images]}
 
     world_text = _world_text(world, height, width, spp)
