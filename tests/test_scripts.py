@@ -300,3 +300,23 @@ def test_pooling_probe_place_correlation_sees_place_and_only_place():
     look = lambda params, images: images[:, 2:]            # noqa: E731
     assert script.place_correlation(where, None, held, positions) == pytest.approx(1.0)
     assert abs(script.place_correlation(look, None, held, positions)) < 0.5
+
+
+def test_tracer_benchmark_carries_the_scene_by_a_rotation_and_refuses_a_folder_without_tamayo(tmp_path):
+    """scripts/bench_tracers.py: our z-up frame goes to tamayo's y-up one by a rotation (lengths, angles
+    and handedness kept), and a --authors folder that holds no tamayo/ is refused with the fix."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    scripts = Path(__file__).resolve().parents[1] / "scripts"
+    sys.path.insert(0, str(scripts))
+    from bench_tracers import _frame
+
+    basis = _frame(np.eye(3))                 # rows: where x, y and z go
+    np.testing.assert_allclose(basis @ basis.T, np.eye(3), atol=1e-7)
+    assert np.isclose(np.linalg.det(basis), 1.0)
+    np.testing.assert_allclose(_frame([0.0, 0.0, 1.0]), [0.0, 1.0, 0.0])      # up stays up
+    done = subprocess.run([sys.executable, str(scripts / "bench_tracers.py"), "--authors", str(tmp_path)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode != 0 and "holds no tamayo" in done.stderr
