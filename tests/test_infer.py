@@ -417,6 +417,47 @@ def test_walk_moves_in_a_symmetry_chart(fitted, observed):
         assert ks_2samp(moved[:, column], reference[:, column]).pvalue > 0.01, column
 
 
+def test_a_moves_sweeps_in_one_call_are_the_sweep_by_sweep_loop(fitted, observed):
+    """``Kernels.sweeps`` (a move's walks and material updates in one compiled call, the count traced) gives
+    the draws a loop over ``walk`` and ``material`` gives with the same keys: the same state, the key left
+    after them, each row's mean acceptance of the walks and of the material updates (made after every
+    second walk and the last), for two counts."""
+    import jax
+    import jax.numpy as jnp
+
+    from mitsuba_p3.infer.smc_moves import kernels, walk_factors
+    from mitsuba_p3.infer.symmetry import chart_centres, folded
+
+    model = PosteriorModel(fitted, observed, LikelihoodConfig("p3", sigma=0.05))
+    k = kernels(model.core, False, 1, "rendered")
+    index = jnp.asarray([0, 2], jnp.int32)
+    start = model.core.prior.sample(np.random.default_rng(11), 16).astype(np.float32).reshape(2, 8, -1)
+    state = (jnp.asarray(start), *k.score(jnp.asarray(start), index, model.observation))
+    centres = chart_centres(start)
+    tril = jnp.asarray(walk_factors(folded(start, centres), np.full(2, 0.5)))
+    centres, lam = jnp.asarray(centres, jnp.float32), jnp.asarray([0.3, 0.7], jnp.float32)
+    for total, made in ((5, (1, 3, 4)), (3, (1, 2))):
+        key = jax.random.PRNGKey(total)
+        out = k.sweeps(key, state, index, lam, tril, centres, model.observation, jnp.int32(total),
+                       material_every=2)
+        looped, walks, materials, turns = state, [], [], []
+        for i in range(total):
+            key, k_walk, k_material = jax.random.split(key, 3)
+            looped, rate = k.walk(k_walk, looped, index, lam, tril, centres, model.observation)
+            walks.append(rate)
+            if i in made:
+                looped, rate, turned, _ = k.material(k_material, looped, index, lam, model.observation)
+                materials.append(rate)
+                turns.append(turned)
+        np.testing.assert_array_equal(out[0], key)
+        for fused, loop in zip(out[1], looped):
+            np.testing.assert_allclose(fused, loop, rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(out[2], np.mean(walks, axis=0), atol=1e-6)
+        np.testing.assert_allclose(out[3], np.mean(materials, axis=0), atol=1e-6)
+        np.testing.assert_allclose(out[4], np.mean(turns, axis=0), atol=1e-6)
+        assert np.isnan(out[5]).all()                   # no kind's jump by default
+
+
 def test_sampler_weighs_modes_correctly(fitted):
     """On a known target (three Gaussians, one per shape class, with weights 0.5, 0.3, 0.2) the
     mode jumps and walks give each class its probability: a wrong Hastings term would not.

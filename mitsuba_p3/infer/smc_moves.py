@@ -62,6 +62,7 @@ class Kernels(NamedTuple):
     gradient: Callable
     turn: Callable
     chart: bool          # the walk moves in each particle's symmetry chart (else plainly in z)
+    sweeps: Callable     # a move's walks and material updates in one call
 
 
 @functools.lru_cache(maxsize=4)
@@ -231,7 +232,34 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str, cha
         loglik, logprior = jnp.where(accept, new_loglik, loglik), jnp.where(accept, new_logprior, logprior)
         return (z, loglik, logprior), accept.mean(axis=1)
 
-    return Kernels(score, walk, material, parts, jax.jit(logprior_all), gradient, jax.jit(turn), chart)
+    @functools.partial(jax.jit, static_argnames=("material_every",))
+    def sweeps(key, state, index, tempering, tril, centres, observation, total, material_every: int):
+        """``total`` sweeps in one call: each a walk, and after every ``material_every``-th walk and the
+        last one a material update, with the keys split as a loop over :func:`walk` and :func:`material`
+        would split them (so a sweep-by-sweep loop gives the same draws). One compiled call per move, not
+        one per sweep (on a GPU, dispatching the sweeps from the host was a large share of a posterior's
+        time: docs/notebook.md, "Rendering speed"); ``total`` is traced, so the last move's longer run
+        shares the compilation. Returns (the key left after the sweeps, state, and per row (R,) the mean
+        acceptance of the walks, of the material updates, of their turns and of their jumps (NaN where
+        the updates make no turn or no jump)."""
+        zero = jnp.zeros(index.shape, jnp.float32)
+
+        def one(i, carry):
+            key, state, walked, updated, turned, jumped, count = carry
+            key, k_walk, k_material = jax.random.split(key, 3)
+            state, walk_rate = walk(k_walk, state, index, tempering, tril, centres, observation)
+            made = ((i + 1) % material_every == 0) | (i == total - 1)
+            state, rate, turn_rate, jump_rate = jax.lax.cond(
+                made, lambda s: material(k_material, s, index, tempering, observation),
+                lambda s: (s, zero, zero, zero), state)
+            return (key, state, walked + walk_rate, updated + rate, turned + turn_rate, jumped + jump_rate,
+                    count + made.astype(jnp.float32))
+
+        key, state, walked, updated, turned, jumped, count = jax.lax.fori_loop(
+            0, total, one, (key, state, zero, zero, zero, zero, jnp.float32(0.0)))
+        return key, state, walked / total, updated / count, turned / count, jumped / count
+
+    return Kernels(score, walk, material, parts, jax.jit(logprior_all), gradient, jax.jit(turn), chart, sweeps)
 
 
 def kernels(core, kinds: bool, ridge: int, symmetry: str | None = None, chart: bool | None = None,
@@ -302,22 +330,26 @@ def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int
         tril = jnp.asarray(walk_factors(folded(position, centres) if kernels.chart else position, state.scale))
         centres = jnp.asarray(centres, jnp.float32)
         particles = tuple(jnp.asarray(a) for a in state[:3])
-        walks, materials, turns, jumps = [], [], [], []
-        kept = [particles] if path else []               # waste-free keeps every sweep's states
         final = bool(np.all(state.tempering >= 1.0))      # every row at lambda = 1: the last move
         total = sweeps + (final_sweeps if final else 0)
-        for i in range(total):
-            key, k_walk, k_material = jax.random.split(key, 3)
-            particles, accepted = kernels.walk(k_walk, particles, index, lam, tril, centres, observation)
-            walks.append(accepted)
-            if (i + 1) % material_every == 0 or i == total - 1:
-                particles, accepted, turned, jumped = kernels.material(k_material, particles, index, lam,
-                                                                       observation)
-                materials.append(accepted)
-                turns.append(turned)
-                jumps.append(jumped)
-            if path:
+        if path:                                           # waste-free keeps every sweep's states
+            kept, walks, materials, turns, jumps = [particles], [], [], [], []
+            for i in range(total):
+                key, k_walk, k_material = jax.random.split(key, 3)
+                particles, accepted = kernels.walk(k_walk, particles, index, lam, tril, centres, observation)
+                walks.append(accepted)
+                if (i + 1) % material_every == 0 or i == total - 1:
+                    particles, accepted, turned, jumped = kernels.material(k_material, particles, index, lam,
+                                                                           observation)
+                    materials.append(accepted)
+                    turns.append(turned)
+                    jumps.append(jumped)
                 kept.append(particles)
+            rates = [np.mean(np.asarray(a), axis=0) for a in (walks, materials, turns, jumps)]
+        else:
+            key, particles, *rates = kernels.sweeps(key, particles, index, lam, tril, centres, observation,
+                                                    jnp.int32(total), material_every=material_every)
+        rates = dict(zip(("walk", "material", "turn", "jump"), (np.asarray(r) for r in rates)))
         gradients = []
         mala = gradient_sweeps + (final_gradient_sweeps if final else 0)
         if mala:
@@ -337,11 +369,9 @@ def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int
             particles = tuple(jnp.concatenate([p[i] for p in kept], axis=1) for i in range(3))
         moved = state._replace(position=np.array(particles[0]), loglikelihood=np.array(particles[1]),
                                logprior=np.array(particles[2]))
-        rates = {"walk": np.mean(np.asarray(walks), axis=0), "material": np.mean(np.asarray(materials), axis=0)}
-        if not np.isnan(np.asarray(turns)).all():
-            rates["turn"] = np.mean(np.asarray(turns), axis=0)
-        if not np.isnan(np.asarray(jumps)).all():
-            rates["jump"] = np.mean(np.asarray(jumps), axis=0)
+        for name in ("turn", "jump"):                     # NaN: this move makes no turns, or no jumps
+            if np.isnan(rates[name]).all():
+                del rates[name]
         if gradients:
             rates["gradient"] = np.mean(np.asarray(gradients), axis=0)
         return moved, rates
