@@ -17,7 +17,8 @@ Why five walks per material update, and why the ridge moves (the colour/weight r
 material update crawls along), was measured on train images: ``docs/notebook.md``, "The SMC
 spends its renders on walks" and "A move along the colour/weight ridge".
 
-:func:`kernels` jits them once per posterior core; :func:`mover` makes the
+:func:`kernels` jits them once per posterior core, and a move's sweeps as one call (a loop on the
+device, not one call per sweep from the host); :func:`mover` makes the
 :data:`~mitsuba_p3.infer.tempering.Move` a tempering step calls.
 """
 from __future__ import annotations
