@@ -186,7 +186,8 @@ def generate(variant: str, out: str | Path, seed: int = 0, size: str = "full",
     refuse_inside_protected(out, "mitsuba-p3 benchmark generate")   # out itself may be this benchmark, resumed
     if (out / "model.json").is_file():
         raise BenchmarkError(f"{out} is a fitted model; choose a new --out folder for the benchmark")
-    world = world_file(variant) if world is None else Path(world)
+    shipped = world_file(variant)
+    world = shipped if world is None else Path(world)
     if not world.is_file():
         raise BenchmarkError(f"{world}: no such world XML")
     defaults = read_defaults(world)
@@ -198,7 +199,7 @@ def generate(variant: str, out: str | Path, seed: int = 0, size: str = "full",
     images = plan(variant, seed, size)
     header = {"format": FORMAT, "version": FORMAT_VERSION, "variant": variant, "seed": seed, "size": size,
               "resolution": [height, width], "spp": spp, "scene": SCENE_FILE,
-              **({} if world == world_file(variant) else {"world": world.name})}
+              **({} if world == shipped else {"world": world.name})}
     labels = {**header, "images": [label_of(im, image_overrides(im, defaults)[1]) for im in images]}
 
     world_text = _world_text(world, height, width, spp)
