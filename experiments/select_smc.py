@@ -58,6 +58,8 @@ def main() -> None:
     parser.add_argument("--configs", default='{"default": {}}', help="JSON: name -> SMCConfig fields")
     parser.add_argument("--noise", default="fitted", help="the model's noise model: fitted or robust")
     parser.add_argument("--size", choices=("small", "large"), help="only train objects of this size")
+    parser.add_argument("--shift", type=float, default=0.0,
+                        help="move the evenly spaced images by this fraction of their spacing (0.5: a disjoint set)")
     args = parser.parse_args()
 
     configs = {name: SMCConfig(**fields) for name, fields in json.loads(args.configs).items()}
@@ -65,7 +67,9 @@ def main() -> None:
     fitted = FittedModel(args.model)
     core = PosteriorCore(fitted, default_likelihood(fitted, "p3", noise=args.noise), "mitsuba", *dataset.resolution)
     shots = [s for s in dataset.split("train") if args.size in (None, s.cls.size)]
-    shots = [shots[i] for i in np.linspace(0, len(shots) - 1, min(args.images, len(shots))).astype(int)]
+    count = min(args.images, len(shots))
+    spacing = (len(shots) - 1) / max(count - 1, 1)
+    shots = [shots[int(i) % len(shots)] for i in np.linspace(0, len(shots) - 1, count) + args.shift * spacing]
     rules = AttributeRules.from_materials(fitted.materials)
     constrain = jax.jit(core.prior.constrain)
     # compile every setting once, so that no setting's first image is charged for it

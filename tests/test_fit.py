@@ -511,6 +511,40 @@ def test_shading_fields_forgive_a_wrong_shade_and_keep_the_outline():
         score(observe(observed, fields, empty=empty), jnp.asarray(renders), fields)
 
 
+def test_a_floor_field_forgives_the_images_own_lighting_and_keeps_the_outline():
+    """With the third region (the rest of the floor), the three masks split the window, a floor lit by
+    another light (a tilt across it: the fitted lights moved) costs nearly nothing where the two-region
+    form charges it in full, and the object one pixel off or absent still costs what it did."""
+    import jax.numpy as jnp
+
+    from mitsuba_p3.infer.likelihood import LikelihoodConfig, fields_masks, observe, score
+
+    size = (24, 30)
+    empty = np.full(size + (3,), 0.4, np.float32)
+    objects = np.zeros((3,) + size, bool)
+    objects[0, 8:16, 10:18] = objects[1, 8:16, 11:19] = True                     # [2]: absent
+    renders = np.stack([empty.copy() for _ in range(3)])
+    renders[0][objects[0]] = renders[1][objects[1]] = 0.7
+    renders[0, 16:18, 10:18] = renders[1, 16:18, 11:19] = 0.3                     # their shadows
+    masks = np.asarray(fields_masks(jnp.asarray(renders), jnp.asarray(objects), jnp.asarray(empty), regions=3))
+    assert masks.shape == (3, 3) + size and (masks.sum(axis=1) == 1).all()      # a partition of the window
+    assert masks[0, 1].sum() == 16 and masks[2, 2].all()                          # the shadow; absent: all floor
+    tilt = 0.05 * np.linspace(-1, 1, size[1])[None, :, None]                    # the image's own lighting
+    observed = (renders[0] + tilt * masks[0, 2][..., None]).astype(np.float32)
+    drops = {}
+    for name, taus in {"two": (0.1, 0.05, 0.05, 0.05), "three": (0.1, 0.05, 0.05, 0.05, 0.1, 0.1)}.items():
+        config = LikelihoodConfig("p3", sigma=0.02, fields=taus)
+        lit = np.asarray(score(observe(observed, config, empty=empty), jnp.asarray(renders), config,
+                               objects=jnp.asarray(objects)))
+        plain = np.asarray(score(observe(renders[0], config, empty=empty), jnp.asarray(renders[:1]), config,
+                                 objects=jnp.asarray(objects[:1])))
+        drops[name] = (float(plain[0] - lit[0]), lit[0] - lit[1], lit[0] - lit[2])
+    assert drops["two"][0] > 100 and abs(drops["three"][0]) < 0.05 * drops["two"][0]
+    assert drops["three"][1] > 100 and drops["three"][2] > 100                    # the outline, the presence
+    with pytest.raises(MitsubaP3Error, match="2 or 3 regions"):
+        LikelihoodConfig("p3", sigma=0.02, fields=(0.1,) * 5)
+
+
 def test_sandwich_power_divides_an_outline_by_a_length_and_a_patch_by_an_area():
     """The composite likelihood's power along an image direction g: 1 for white residuals; for
     correlated ones about 1 / (correlation area) when g is a broad patch, and several times more when

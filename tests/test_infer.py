@@ -668,19 +668,20 @@ def test_the_shading_fields_likelihood_traces_the_object_it_scores(fitted):
     """Under ``--noise fields`` the core traces each hypothesis's object pixels in the scored window
     (the same pixels the Mitsuba render shades as object, for every class), and its log likelihood, by
     the walk's path and by the material move's bases, is the fields' density of the render's residual
-    with those pixels as the object's region; the fit wrote the form (sigma, four scales, a power)."""
+    with those pixels as the object's region; the fit wrote the form (sigma, a scale per region and degree,
+    a power)."""
     import jax
     import jax.numpy as jnp
     from blackjax.mcmc.random_walk import RWState
 
-    from mitsuba_p3.fit.fields import FieldsNoise
+    from mitsuba_p3.fit.fields import FIT_REGIONS, FieldsNoise
     from mitsuba_p3.infer.likelihood import fields_log_likelihood
     from mitsuba_p3.infer.model import PosteriorCore
     from mitsuba_p3.infer.posterior import default_likelihood
     from mitsuba_p3.render import make_renderer
 
     form = FieldsNoise.from_dict(fitted.noise.fields)
-    assert len(form.taus) == 4 and 0 < form.power <= 1 and form.sigma > 0
+    assert form.regions == FIT_REGIONS and len(form.taus) == 2 * FIT_REGIONS and 0 < form.power <= 1 and form.sigma > 0
     likelihood = default_likelihood(fitted, "p3", noise="fields")
     assert likelihood.fields == form.taus and likelihood.power == form.power
     core = PosteriorCore(fitted, likelihood, "mitsuba", 120, 160)

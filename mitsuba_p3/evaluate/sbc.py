@@ -180,13 +180,14 @@ def simulate_scored(core, rng: np.random.Generator, window: tuple[int, int] | No
     if core.config.fields is None:
         return image, truth, cls, None
     from ..fit.fields import sample_fields
-    from ..infer.likelihood import fields_form, fields_masks
+    from ..infer.likelihood import fields_form, fields_masks, fields_regions
 
     where = (core.window_for(image, tuple(window)) if window else None) or (0, 0, *image.shape[:2])
     top, left, height, width = where
     observation = core.observe(image, where)
     objects = core.objects(jnp.asarray(z), observation)
-    masks = fields_masks(jnp.asarray(clean[top:top + height, left:left + width]), objects, observation["empty"])
+    masks = fields_masks(jnp.asarray(clean[top:top + height, left:left + width]), objects, observation["empty"],
+                         fields_regions(core.config))
     variances, basis, loading = fields_form(core.config, height, width)
     image[top:top + height, left:left + width] += sample_fields(np.asarray(masks), variances, basis, rng,
                                                                 loading).astype(np.float32)

@@ -15,8 +15,11 @@ leaves. This form ties the correlation to what the hypothesis renders.
 
 where B's columns are low-order polynomials of the pixel coordinates (constant and
 linear by default, scaled to [-1, 1] over the window), each multiplied by a *region*
-mask: the pixels the hypothesis renders as object, and the floor its shadow darkens.
-Each region and polynomial degree has its own tau. Integrating w out (Woodbury),
+mask: the pixels the hypothesis renders as object, the floor its shadow darkens, and
+(a third region, where the form has one) the rest of the window's floor, which carries
+the image's own lighting where it differs from the fitted lights' (lights that move
+from image to image, as CLEVR's do). Each region and polynomial degree has its own
+tau. Integrating w out (Woodbury),
 
     log p(r) = -1/2 (r'r - sum_g b_g' (G_g + sigma^2 T_g^-1)^-1 b_g) / sigma^2
                - 1/2 sum_g log det(I + T_g G_g / sigma^2) - P/2 log(2 pi sigma^2),
@@ -26,9 +29,10 @@ regions' blocks are independent).
 
 A field changes the object's shading smoothly; it cannot move the outline (it lives on
 the rendered mask) and an absent object has no mask to carry one, so the outline and the
-object's presence keep their evidence while a wrong shade costs little. The
-log-determinant is the fields' Occam factor: a larger mask has more freedom and pays for
-it.
+object's presence keep their evidence while a wrong shade costs little. The floor's field
+is a plane across the whole floor: it can follow a change of lighting, not an object's
+compact blob. The log-determinant is the fields' Occam factor: a larger mask has more
+freedom and pays for it.
 
 **Across the colour channels** (``channels``) the fields are ``independent`` (a field per
 channel: any change of the object's colour is a constant field, so the form forgives a
@@ -54,13 +58,15 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-REGIONS = ("object", "shadow")
+REGIONS = ("object", "shadow", "floor")   # a form uses the first 2 or all 3 (older models: 2)
 CHANNELS = ("independent", "achromatic", "mixed")
 # the loading the noise stage fits: independent fields forgive a wrong colour (on fsclvr's and studio's train
 # images the nearest wrong colour of the same kind cost 4-9 nats against the fitted Gaussian's 186-222, and
 # beat the truth in 3-4 of 12); achromatic ones keep it (193 both) and keep most of the outline's gain
 # (experiments/probe_object_fields.py --channels; results/fields/README.md)
 FIT_CHANNELS = "achromatic"
+# how many of REGIONS the noise stage fits fields on (2: object and shadow; 3: and the rest of the floor)
+FIT_REGIONS = 3
 
 
 @dataclass(frozen=True)
@@ -90,6 +96,20 @@ class FieldsNoise:
     def loadings(self) -> np.ndarray:
         """(K, k, 3) the basis columns' loadings (:func:`loadings`)."""
         return loadings(self.degree, self.channels)
+
+    @property
+    def regions(self) -> int:
+        """How many of :data:`REGIONS` the form has fields on."""
+        return region_count(self.taus, self.degree)
+
+
+def region_count(taus, degree: int) -> int:
+    """How many of :data:`REGIONS` a form with ``taus`` (region-major, degrees 0..``degree``) covers; a
+    ValueError unless that is 2 or 3 whole regions."""
+    regions, rest = divmod(len(taus), degree + 1)
+    if rest or regions not in (2, 3):
+        raise ValueError(f"the shading fields need 2 or 3 regions x {degree + 1} degrees of scales; got {len(taus)}")
+    return regions
 
 
 def _degrees(degree: int) -> np.ndarray:
@@ -126,7 +146,7 @@ def loadings(degree: int, channels: str = "independent") -> np.ndarray:
 def column_variances(taus, degree: int, channels: str = "independent") -> np.ndarray:
     """(regions, K) tau^2 of each basis column of :func:`loadings`: its region's tau at its monomial's degree."""
     per = _degrees(degree)
-    taus = np.asarray(taus, np.float64).reshape(len(REGIONS), degree + 1)
+    taus = np.asarray(taus, np.float64).reshape(region_count(taus, degree), degree + 1)
     column_degree = np.array([per[np.nonzero(column.any(axis=1))[0][0]] for column in loadings(degree, channels)])
     return taus[:, column_degree] ** 2
 
@@ -227,7 +247,7 @@ def fit_fields(residuals: np.ndarray, masks: np.ndarray, degree: int = 1,
     height, width = residuals.shape[1:3]
     basis = monomials(height, width, degree)
     loading = loadings(degree, channels)
-    groups = len(REGIONS) * (degree + 1)
+    groups = masks.shape[1] * (degree + 1)
 
     def model(log_params) -> FieldsNoise:
         return FieldsNoise(float(np.exp(log_params[0])), tuple(np.exp(log_params[1:]).tolist()), degree, 1.0,

@@ -223,10 +223,11 @@ def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, 
     if objects is not None:
         from dataclasses import replace
 
-        from .fields import FIT_CHANNELS, fit_fields
+        from .fields import FIT_CHANNELS, FIT_REGIONS, fit_fields
 
         fields, fields_figures = fit_fields(*field_windows(residuals, regions.astype(bool), np.asarray(objects, bool),
-                                                           sizes[0]), channels=FIT_CHANNELS)
+                                                           sizes[0], FIT_REGIONS),
+                                            channels=FIT_CHANNELS)
         model = replace(model, fields=fields.as_dict())
     figures = {"pixels": int(np.prod(residuals.shape[:-1])), "object_pixels": int(regions.sum()),
                "residual_rms": model.gaussian_sigma,
@@ -240,10 +241,10 @@ def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, 
 
 
 def field_windows(residuals: np.ndarray, regions: np.ndarray, objects: np.ndarray,
-                  size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+                  size: tuple[int, int], count: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """The shading fields' training data: residual windows (N, h, w, 3) of ``size`` centred on each image's
-    object and shadow (``regions``, (N, H, W)), and their region masks (N, 2, h, w): the object's pixels
-    (``objects``) and the rest of the footprint (its shadow)."""
+    object and shadow (``regions``, (N, H, W)), and their region masks (N, ``count``, h, w): the object's
+    pixels (``objects``), the rest of the footprint (its shadow), and with ``count`` 3 the rest of the floor."""
     height, width = residuals.shape[1:3]
     size = (min(size[0], height), min(size[1], width))
     windows, masks = [], []
@@ -251,7 +252,8 @@ def field_windows(residuals: np.ndarray, regions: np.ndarray, objects: np.ndarra
         top, left = window_around(regions[n], size)
         crop = (slice(top, top + size[0]), slice(left, left + size[1]))
         windows.append(residuals[n][crop])
-        masks.append(np.stack([objects[n][crop], regions[n][crop] & ~objects[n][crop]]))
+        masks.append(np.stack([objects[n][crop], regions[n][crop] & ~objects[n][crop],
+                               ~(regions[n][crop] | objects[n][crop])][:count]))
     return np.stack(windows), np.stack(masks).astype(np.float64)
 
 

@@ -93,8 +93,6 @@ class LikelihoodConfig:
         if self.spectral and (self.outlier > 0 or self.object_outlier is not None):
             raise ConfigError("the spectral noise form has no outlier weights")
         if self.fields is not None:
-            from ..fit.fields import REGIONS
-
             if self.spectral or self.outlier > 0 or self.object_outlier is not None:
                 raise ConfigError("the shading fields' form has no outlier weights and no spectrum")
             from ..fit.fields import CHANNELS
@@ -102,10 +100,10 @@ class LikelihoodConfig:
             if self.fields_channels not in CHANNELS:
                 raise ConfigError(f"the shading fields' channels must be one of {', '.join(CHANNELS)}; got "
                                   f"{self.fields_channels!r}")
-            if (len(self.fields) != len(REGIONS) * (self.fields_degree + 1)
+            if (len(self.fields) not in (2 * (self.fields_degree + 1), 3 * (self.fields_degree + 1))
                     or not all(np.isfinite(t) and t > 0 for t in self.fields)):
-                raise ConfigError(f"the shading fields need {len(REGIONS) * (self.fields_degree + 1)} positive "
-                                  f"scales (regions x degrees 0..{self.fields_degree}); got {self.fields}")
+                raise ConfigError(f"the shading fields need positive scales for 2 or 3 regions x degrees "
+                                  f"0..{self.fields_degree}; got {self.fields}")
 
 
 def whiten(images, observation: dict, config: LikelihoodConfig):
@@ -186,15 +184,25 @@ def observe(observed: np.ndarray, config: LikelihoodConfig, channels: list[Chann
     return observation
 
 
-def fields_masks(renders, objects, empty):
-    """(..., 2, h, w) the shading fields' regions of renders (..., h, w, 3) whose object covers ``objects``
-    (..., h, w): the object's pixels, and the floor the render changes from ``empty`` elsewhere (its shadow)."""
+def fields_masks(renders, objects, empty, regions: int = 2):
+    """(..., R, h, w) the shading fields' regions of renders (..., h, w, 3) whose object covers ``objects``
+    (..., h, w): the object's pixels, the floor the render changes from ``empty`` elsewhere (its shadow),
+    and with ``regions`` 3 the rest of the floor (:data:`~mitsuba_p3.fit.fields.REGIONS`)."""
     import jax.numpy as jnp
 
     from ..fit.noise import object_pixels
 
     objects = jnp.asarray(objects, bool)
-    return jnp.stack([objects, object_pixels(renders, jnp.asarray(empty), xp=jnp) & ~objects], axis=-3)
+    changed = object_pixels(renders, jnp.asarray(empty), xp=jnp)
+    masks = [objects, changed & ~objects] + ([~(changed | objects)] if regions == 3 else [])
+    return jnp.stack(masks, axis=-3)
+
+
+def fields_regions(config: LikelihoodConfig) -> int:
+    """How many regions the config's shading fields cover (:func:`~mitsuba_p3.fit.fields.region_count`)."""
+    from ..fit.fields import region_count
+
+    return region_count(config.fields, config.fields_degree)
 
 
 def fields_form(config: LikelihoodConfig, height: int, width: int):
@@ -216,7 +224,8 @@ def fields_log_likelihood(observed, renders, objects, empty, config: LikelihoodC
 
     variances, basis, loading = fields_form(config, *renders.shape[-3:-1])
     residual = jnp.asarray(observed)[None] - renders
-    return config.power * field_log_likelihood(residual, fields_masks(renders, objects, empty), config.sigma,
+    masks = fields_masks(renders, objects, empty, fields_regions(config))
+    return config.power * field_log_likelihood(residual, masks, config.sigma,
                                                variances, basis, xp=jnp, loading=loading)
 
 

@@ -21,7 +21,7 @@ from ..fit.priors import Prior
 from ..render import RENDERERS
 from ..render.contract import OBJECT_SHAPES
 from ..space import DIMENSION, HYPOTHESES, OBJECT_KEYS, SLICES, render_params
-from .likelihood import LikelihoodConfig, fields_form, fields_masks, observe, score, whiten
+from .likelihood import LikelihoodConfig, fields_form, fields_masks, fields_regions, observe, score, whiten
 from .mcmc import Target
 from .window import OUTSIDE_WINDOW, pixel_of, window_for, window_log_term
 
@@ -483,14 +483,16 @@ class PosteriorCore:
         channel c and vector j in channel c': under covariance sigma^2 I + B T B' the precision is
         (I - B (G + sigma^2 T^-1)^-1 B') / sigma^2, so x'Qy is the white x'y / sigma^2 less
         (B'x)' (G + sigma^2 T^-1)^-1 (B'y) / sigma^2 (:mod:`mitsuba_p3.fit.fields`). Zero for c != c' when
-        every field is a single channel's. The regions are the pose's: its object's pixels and the floor
-        its shadow changes (the materials move neither)."""
+        every field is a single channel's. The regions are the pose's: its object's pixels, the floor
+        its shadow changes, and the rest of the floor where the form has that region (the materials move
+        none of them)."""
         import jax.numpy as jnp
 
         from ..fit.fields import column_statistics, field_statistics
 
         height, width = vectors.shape[:2]
-        masks = fields_masks(bases[..., 3, :], self.objects(z, observation), observation["empty"])
+        masks = fields_masks(bases[..., 3, :], self.objects(z, observation), observation["empty"],
+                             fields_regions(self.config))
         variances, basis, loading = fields_form(self.config, height, width)
         statistics = field_statistics(jnp.moveaxis(vectors, -2, 0), masks, basis, xp=jnp)   # b: (4, R, k, 3)
         _, gram, _, _ = column_statistics(statistics, loading, xp=jnp)                       # (R, K, K)
