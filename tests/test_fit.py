@@ -750,3 +750,29 @@ def test_a_damaged_model_folder_is_one_line_naming_the_refit(tiny_model, tmp_pat
     with pytest.raises(MitsubaP3Error, match=f"{name}: missing or unreadable.*--stages"):
         model = FittedModel(folder)
         model.scene(), model.channels, model.prior, model.noise
+
+
+def test_the_written_out_cholesky_is_lapacks():
+    """:mod:`mitsuba_p3.small_linalg` (the samplers' factorisation with no LAPACK call) gives LAPACK's factor,
+    solves, triangular solves and log-determinant on a batch of SPD matrices, in numpy and in jitted JAX."""
+    import jax
+    import jax.numpy as jnp
+
+    from mitsuba_p3 import small_linalg as sl
+
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(4, 3, 5, 5))
+    a = a @ np.swapaxes(a, -1, -2) + 5 * np.eye(5)
+    b = rng.normal(size=(4, 3, 5))
+    lower = np.linalg.cholesky(a)
+    factor = sl.cholesky(a)
+    np.testing.assert_allclose(sl.as_matrix(factor), lower, atol=1e-12)
+    np.testing.assert_allclose(sl.solve(factor, b), np.linalg.solve(a, b[..., None])[..., 0], atol=1e-12)
+    np.testing.assert_allclose(sl.forward(factor, b), np.linalg.solve(lower, b[..., None])[..., 0], atol=1e-12)
+    np.testing.assert_allclose(sl.backward(factor, b), np.linalg.solve(np.swapaxes(lower, -1, -2), b[..., None])[..., 0],
+                               atol=1e-12)
+    np.testing.assert_allclose(sl.log_det(factor), np.linalg.slogdet(a)[1], atol=1e-12)
+    jitted = jax.jit(lambda m, v: (sl.solve(sl.cholesky(m, jnp), v, jnp), sl.log_det(sl.cholesky(m, jnp), jnp)))
+    solved, log_det = jitted(jnp.asarray(a, jnp.float32), jnp.asarray(b, jnp.float32))
+    np.testing.assert_allclose(np.asarray(solved), np.linalg.solve(a, b[..., None])[..., 0], atol=1e-4)
+    np.testing.assert_allclose(np.asarray(log_det), np.linalg.slogdet(a)[1], atol=1e-4)

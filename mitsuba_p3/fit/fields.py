@@ -58,6 +58,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from ..small_linalg import cholesky, log_det, solve
+
 REGIONS = ("object", "shadow", "floor")   # a form uses the first 2 or all 3 (older models: 2)
 CHANNELS = ("independent", "achromatic", "mixed")
 # the loading the noise stage fits: independent fields forgive a wrong colour (on fsclvr's and studio's train
@@ -197,9 +199,12 @@ def marginal_log_likelihood(statistics: tuple, sigma: float, variances, xp=np, s
     size = gram.shape[-1]
     eye = xp.eye(size, dtype=gram.dtype)
     variances = xp.asarray(variances, gram.dtype)
-    means = xp.linalg.solve(gram + (sigma ** 2 / variances)[..., None] * eye, projected[..., None])[..., 0]
+    # one Cholesky factor of M = G + sigma^2 T^-1 gives the fields' means M^-1 b and the Occam factor:
+    # det(I + T G / sigma^2) = det(T) det(M) / sigma^(2K) (written out: :mod:`mitsuba_p3.small_linalg`)
+    factor = cholesky(gram + (sigma ** 2 / variances)[..., None] * eye, xp)
+    means = solve(factor, projected, xp)
     quadratic = squares - xp.sum(projected * means, axis=(-2, -1))
-    _, logdet = xp.linalg.slogdet(eye + variances[..., :, None] * gram / sigma ** 2)      # (..., R)
+    logdet = xp.sum(xp.log(variances), axis=-1) + log_det(factor, xp) - size * np.log(sigma ** 2)   # (..., R)
     value = (-0.5 * quadratic / sigma ** 2 - 0.5 * xp.sum(logdet, axis=-1)
              - 0.5 * count * np.log(2 * np.pi * sigma ** 2))
     return (value, means) if solved else value

@@ -21,9 +21,10 @@ out of the window can cost less than one a few millimetres off: not a default
 (docs/notebook.md, "A likelihood that keeps the outline").
 
 With ``fields`` (``--noise fields``) the mismatch is tied to what the hypothesis renders: smooth
-shading fields on its own object's pixels and on the floor its shadow changes, integrated out
-(:mod:`mitsuba_p3.fit.fields`), so a wrong shade costs little while the outline and the object's
-presence keep their evidence; beta is the power of the correlation the fields leave. This form
+shading fields on its own object's pixels, on the floor its shadow changes and (in forms fitted
+with three regions) on the rest of the floor, integrated out (:mod:`mitsuba_p3.fit.fields`), so a
+wrong shade or the image's own lighting costs little while the outline and the object's presence
+keep their evidence; beta is the power of the correlation the fields leave. This form
 needs each render's object pixels, which :class:`~mitsuba_p3.infer.model.PosteriorCore` traces from
 the pose (``objects`` of :func:`score`).
 

@@ -16,6 +16,7 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
+from .. import small_linalg
 from ..fit.model import FittedModel
 from ..fit.priors import Prior
 from ..render import RENDERERS
@@ -50,9 +51,10 @@ class MixtureConditional(NamedTuple):
 
         precision = jax.vmap(jnp.diag)(1.0 / var) + lam                             # (C, 3, 3)
         h = mu / var + eta
-        chol = jnp.linalg.cholesky(precision)
-        mean = jax.vmap(lambda c, v: jax.scipy.linalg.cho_solve((c, True), v))(chol, h)
-        log_det_p = 2 * jnp.sum(jnp.log(jax.vmap(jnp.diag)(chol)), axis=1)
+        factor = small_linalg.cholesky(precision, jnp)       # written out: no LAPACK call (small_linalg)
+        chol = small_linalg.as_matrix(factor, jnp)
+        mean = small_linalg.solve(factor, h, jnp)
+        log_det_p = small_linalg.log_det(factor, jnp)
         log_evidence = (-0.5 * jnp.sum(jnp.log(var), axis=1) - 0.5 * log_det_p + 0.5 * jnp.sum(h * mean, axis=1)
                         - 0.5 * jnp.sum(mu * mu / var, axis=1))
         return cls(jax.nn.log_softmax(log_w + log_evidence), mean, precision, chol, log_det_p)
@@ -68,11 +70,13 @@ class MixtureConditional(NamedTuple):
 
     def draw(self, key):
         import jax
+        import jax.numpy as jnp
 
         k_combo, k_noise = jax.random.split(key)
         combo = jax.random.categorical(k_combo, self.log_mix)
         noise = jax.random.normal(k_noise, (3,))
-        return self.mean[combo] + jax.scipy.linalg.solve_triangular(self.chol[combo].T, noise, lower=False)
+        factor = [[self.chol[combo][i, j] for j in range(3)] for i in range(3)]
+        return self.mean[combo] + small_linalg.backward(factor, noise, jnp)
 
 
 def contract_params(prior: Prior, z) -> dict:
@@ -501,7 +505,7 @@ class PosteriorCore:
         columns = jnp.einsum("jmc,irmc->icrj", loading, statistics[2])
         size = gram.shape[-1]
         inner = gram + (self.config.sigma ** 2 / jnp.asarray(variances, gram.dtype))[..., None] * jnp.eye(size)
-        solved = jnp.linalg.solve(inner[None, None], columns[..., None])[..., 0]            # (4, 3, R, K)
+        solved = small_linalg.solve(small_linalg.cholesky(inner, jnp), columns, jnp)        # (4, 3, R, K)
         return jnp.einsum("icrk,jdrk->cdij", columns, solved)
 
     def _kind_jump(self, key, state, bases, gram, observation, target):
