@@ -33,7 +33,8 @@ coarse wide start, rendered turns, chart walk or window term (the default before
 the default scoring a scene whose object left the window by the window alone (the default until the eighth session,
 ``SMCConfig.inside_window``); ``smc-unfolded`` the default
 with the walk in z, not in a symmetry chart (the default before the chart walk); ``smc-jump`` the default with
-the material kind's jump; ``mh-paper`` the MH evaluation preset with the paper's likelihood
+the material kind's jump; ``smc-fields`` the default sampler under the shading fields' form (``--noise fields``);
+``mh-paper`` the MH evaluation preset with the paper's likelihood
 (sigma 1, no shadows), the project's old default; ``mh-fitted`` that sampler with the fitted
 noise. ``NAME:S`` runs a setting with S seeds instead of ``--seeds``. Needs a benchmark folder
 and a model fitted to it:
@@ -73,7 +74,8 @@ CONFIGS = {"mh-paper": {"noise": "paper"}, "mh-fitted": {"noise": "fitted"},
                                                                   inside_window=False)},
            "smc-window-alone": {"noise": "fitted", "sampler": SMCConfig(inside_window=False)},
            "smc-unfolded": {"noise": "fitted", "sampler": SMCConfig(chart=False)},
-           "smc-jump": {"noise": "fitted", "sampler": SMCConfig(jump=True)}}
+           "smc-jump": {"noise": "fitted", "sampler": SMCConfig(jump=True)},
+           "smc-fields": {"noise": "fields", "sampler": SMCConfig()}}
 CHECKED = ("shift", "scale", "colour")
 
 
