@@ -96,15 +96,17 @@ class LikelihoodConfig:
         if self.fields is not None:
             if self.spectral or self.outlier > 0 or self.object_outlier is not None:
                 raise ConfigError("the shading fields' form has no outlier weights and no spectrum")
-            from ..fit.fields import CHANNELS
+            from ..fit.fields import CHANNELS, region_count
 
             if self.fields_channels not in CHANNELS:
                 raise ConfigError(f"the shading fields' channels must be one of {', '.join(CHANNELS)}; got "
                                   f"{self.fields_channels!r}")
-            if (len(self.fields) not in (2 * (self.fields_degree + 1), 3 * (self.fields_degree + 1))
-                    or not all(np.isfinite(t) and t > 0 for t in self.fields)):
-                raise ConfigError(f"the shading fields need positive scales for 2 or 3 regions x degrees "
-                                  f"0..{self.fields_degree}; got {self.fields}")
+            try:
+                region_count(self.fields, self.fields_degree)
+            except ValueError as exc:
+                raise ConfigError(str(exc)) from None
+            if not all(np.isfinite(t) and t > 0 for t in self.fields):
+                raise ConfigError(f"the shading fields' scales must be positive; got {self.fields}")
 
 
 def whiten(images, observation: dict, config: LikelihoodConfig):
