@@ -63,10 +63,10 @@ TONE_CURVES = ("none", "aces")
 
 def tone_map(linear: np.ndarray, curve: str = "none") -> np.ndarray:
     """A camera's response to linear radiance, before the sRGB encoding: ``none`` leaves it to the
-    encoding, which clips at 1 (what the Phong model assumes); ``aces`` is the filmic curve of film and of Blender's and game engines'
-    defaults (Narkowicz's 2015 fit of ACES, exposure 0.6), which lifts the shadows and rolls highlights
-    off instead of clipping them: an image pipeline other than the project's own. A world chooses it with
-    ``<default name="tone_curve" value="aces"/>``."""
+    encoding, which clips at 1 (what the Phong model assumes); ``aces`` is the filmic curve of film and
+    of Blender's and game engines' defaults (Narkowicz's 2015 fit of ACES, exposure 0.6), which lifts the
+    shadows and rolls highlights off instead of clipping them: an image pipeline other than the project's
+    own. A world chooses it with ``<default name="tone_curve" value="aces"/>``."""
     x = np.asarray(linear, dtype=np.float64)
     if curve == "none":
         return x
