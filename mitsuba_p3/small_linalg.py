@@ -1,7 +1,8 @@
 """Cholesky factors and solves of small symmetric positive definite matrices, written out.
 
 The samplers factor many tiny matrices at once (the shading fields' K x K systems, K = 3 to
-18, per particle and region; the colour's 3 x 3 precision per prior component). Through
+18, per particle and region; the colour's 3 x 3 precision per prior component) and solve with
+the walk's 15 x 15 scale factor per run. Through
 ``jnp.linalg`` each batch becomes a LAPACK custom call, and the jaxlib releases of April to
 July 2026 split such a batch over XLA's intra-op thread pool and wait for the pieces inside
 a pool thread (jax-ml/jax#36927, fixed by running it serially). Two independent calls then
@@ -31,6 +32,13 @@ def cholesky(a, xp=np) -> list:
             off = a[..., i, j] - sum((factor[i][k] * factor[j][k] for k in range(j)), xp.zeros_like(a[..., i, j]))
             factor[i][j] = off / factor[j][j]
     return factor
+
+
+def rows(lower) -> list:
+    """A lower-triangular matrix (..., n, n) as a factor of :func:`cholesky`'s form, so that
+    :func:`forward` and :func:`backward` solve with a factor made elsewhere (the walk's scale)."""
+    n = lower.shape[-1]
+    return [[lower[..., i, j] if j <= i else None for j in range(n)] for i in range(n)]
 
 
 def as_matrix(factor: list, xp=np):

@@ -30,6 +30,7 @@ def main() -> None:
     parser.add_argument("--set", dest="settings", action="append", default=[], help="smc.FIELD=VALUE")
     parser.add_argument("--profile", default=None, help="write the last image's profile here")
     parser.add_argument("--seeds", type=int, default=1, help="sample every image under this many seeds")
+    parser.add_argument("--noise", default=None, help="the noise form (default: the default, DEFAULT_NOISE)")
     args = parser.parse_args()
     from mitsuba_p3.cli.settings import apply_settings
     from mitsuba_p3.fit.model import FittedModel
@@ -40,10 +41,11 @@ def main() -> None:
     from bench_render import where
 
     fitted = FittedModel(args.model)
-    likelihood = default_likelihood(fitted, "p3", None, DEFAULT_NOISE)
+    noise = args.noise or DEFAULT_NOISE
+    likelihood = default_likelihood(fitted, "p3", None, noise)
     images = [load_observation(p) for p in args.images]
     truth = [t["class"]["shape"] for t in json.load(open(args.truth))] if args.truth else None
-    report = {"machine": where(), "renderer": args.renderer, "noise": DEFAULT_NOISE, "images": len(images),
+    report = {"machine": where(), "renderer": args.renderer, "noise": noise, "images": len(images),
               "settings": args.settings, "runs": {}}
     for particles in (int(p) for p in args.particles.split(",")):
         config = apply_settings(SMCConfig(particles=particles), args.settings)

@@ -772,6 +772,10 @@ def test_the_written_out_cholesky_is_lapacks():
     np.testing.assert_allclose(sl.backward(factor, b), np.linalg.solve(np.swapaxes(lower, -1, -2), b[..., None])[..., 0],
                                atol=1e-12)
     np.testing.assert_allclose(sl.log_det(factor), np.linalg.slogdet(a)[1], atol=1e-12)
+    # a lower-triangular matrix made elsewhere (the walk's scale), broadcast over a batch of right-hand sides
+    many = rng.normal(size=(4, 3, 7, 5))
+    np.testing.assert_allclose(sl.forward(sl.rows(lower[..., None, :, :]), many),
+                               np.linalg.solve(lower[..., None, :, :], many[..., None])[..., 0], atol=1e-12)
     jitted = jax.jit(lambda m, v: (sl.solve(sl.cholesky(m, jnp), v, jnp), sl.log_det(sl.cholesky(m, jnp), jnp)))
     solved, log_det = jitted(jnp.asarray(a, jnp.float32), jnp.asarray(b, jnp.float32))
     np.testing.assert_allclose(np.asarray(solved), np.linalg.solve(a, b[..., None])[..., 0], atol=1e-4)

@@ -280,7 +280,10 @@ def test_select_np3_start_takes_train_images_round_robin_over_classes():
 def test_only_the_headline_run_writes_the_benchmarks_posterior_figure():
     """A reproduction under the paper's likelihood (or another sigma) names its posterior figure after
     its run, so it does not overwrite the headline run's ``posterior-V.png``."""
-    assert tables.posterior_figure_name("room", "fitted") == "posterior-room.png"
+    from mitsuba_p3.infer.likelihood import DEFAULT_NOISE
+
+    assert tables.posterior_figure_name("room", DEFAULT_NOISE) == "posterior-room.png"
+    assert tables.posterior_figure_name("room", "fitted") == "posterior-room-fitted.png"
     assert tables.posterior_figure_name("room", None) == "posterior-room-paper.png"
     assert tables.posterior_figure_name("dark", 0.35) == "posterior-dark-sigma0.35.png"
     assert tables.posterior_figure_name("ood", "robust") == "posterior-ood-robust.png"

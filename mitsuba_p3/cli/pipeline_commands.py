@@ -20,8 +20,9 @@ from .settings import CONFIG_HELP, SET_HELP, apply_settings
 NOISE_HELP = ("Noise model: fitted (the Gaussian fitted to the model's train residuals, with hard shadows, "
               "at the power 1 / their correlation area), sandwich (the same Gaussian at the composite "
               "likelihood's power along the object's outline), robust (the fitted inlier/outlier mixture), spectral (the correlated Gaussian field fitted to the "
-              "train residual windows' power spectrum), fields (smooth shading fields on the hypothesis's own object "
-              "and shadow, marginalised: a wrong shade costs little, the outline keeps its evidence) or paper (sigma 1, no shadows: the paper's).")
+              "train residual windows' power spectrum), fields (smooth shading fields on the hypothesis's own object, "
+              "its shadow and the rest of the floor, marginalised: a wrong shade or a change of lighting costs little, "
+              "the outline keeps its evidence) or paper (sigma 1, no shadows: the paper's).")
 SPREAD_HELP = ("Train images per train class whose posteriors fit the protoprograms' concept spread "
                "(sampled like the test images; 0: the paper's programs, tables in RUN/spread0).")
 KL_HELP = ("The distance's KL direction: image||class (KL(C_I || C_k), chosen on held-out train classes' 1- and "
@@ -163,8 +164,9 @@ def sbc(
                                                        f"{SMCConfig.particles})."),
     resolution: str = typer.Option("120x160", help="HxW of the simulated images."),
     seed: int = typer.Option(0, help="Seed of the simulations and the sampler."),
-    noise: str = typer.Option("fitted", help="The likelihood: fitted (the Gaussian at power 1 / correlation area), "
-                                             "sandwich (the pose's power) or fields (the shading fields' form)."),
+    noise: str = typer.Option(DEFAULT_NOISE, help="The likelihood: fitted (the Gaussian at power 1 / correlation "
+                                                  "area), sandwich (the pose's power) or fields (the shading fields' "
+                                                  "form)."),
     settings: Optional[List[str]] = typer.Option(None, "--set", help=SET_HELP),
     config_file: Optional[Path] = typer.Option(None, "--config", help=CONFIG_HELP),
 ) -> None:

@@ -28,6 +28,7 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
+from .. import small_linalg
 from ..space import DIMENSION, SLICES
 from .hypotheses import hypotheses_of, hypothesis_log_prior
 from .symmetry import chart_centres, folded, quarter_turn, quarters
@@ -118,8 +119,9 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str, cha
         back = quarters(proposed, centres, jnp) if chart else copy
         from_new, _ = quarter_turn(proposed, -back, jnp)
         to_old, log_unturn_back = quarter_turn(z, -back, jnp)
-        solve = jax.vmap(lambda lower, b: jax.scipy.linalg.solve_triangular(lower, b.T, lower=True).T)
-        reverse = solve(tril + jnp.diag(1.0 - mask), to_old - from_new)
+        # the reverse step's noise, L^-1 (z - z'): written out, no LAPACK call (mitsuba_p3/small_linalg.py)
+        reverse = small_linalg.forward(small_linalg.rows((tril + jnp.diag(1.0 - mask))[:, None]), to_old - from_new,
+                                       jnp)
         crossed = (back - copy) % 4 != 0
         log_hastings = jnp.where(crossed, 0.5 * jnp.sum(noise ** 2 - reverse ** 2, axis=-1) + log_unturn_back,
                                  log_unturn) + log_turn
