@@ -58,6 +58,7 @@ def main() -> None:
     parser.add_argument("--configs", default='{"default": {}}', help="JSON: name -> SMCConfig fields")
     parser.add_argument("--noise", default="fitted", help="the model's noise model: fitted or robust")
     parser.add_argument("--size", choices=("small", "large"), help="only train objects of this size")
+    parser.add_argument("--colours", help="only train objects of these colours (comma-separated: gray,brown)")
     parser.add_argument("--shift", type=float, default=0.0,
                         help="move the evenly spaced images by this fraction of their spacing (0.5: a disjoint set)")
     args = parser.parse_args()
@@ -66,7 +67,9 @@ def main() -> None:
     dataset = load_dataset(args.dataset)
     fitted = FittedModel(args.model)
     core = PosteriorCore(fitted, default_likelihood(fitted, "p3", noise=args.noise), "mitsuba", *dataset.resolution)
-    shots = [s for s in dataset.split("train") if args.size in (None, s.cls.size)]
+    colours = None if args.colours is None else set(args.colours.split(","))
+    shots = [s for s in dataset.split("train")
+             if args.size in (None, s.cls.size) and (colours is None or s.cls.colour in colours)]
     count = min(args.images, len(shots))
     spacing = (len(shots) - 1) / max(count - 1, 1)
     shots = [shots[int(i) % len(shots)] for i in np.linspace(0, len(shots) - 1, count) + args.shift * spacing]
@@ -75,7 +78,8 @@ def main() -> None:
     # compile every setting once, so that no setting's first image is charged for it
     for config in configs.values():
         sample_smc(core, core.observe(dataset.image(shots[0])), replace(config, max_temperatures=2))
-    report = {"dataset": args.dataset, "images": len(shots), "noise": args.noise, "size": args.size}
+    report = {"dataset": args.dataset, "images": len(shots), "noise": args.noise, "size": args.size,
+              "colours": args.colours}
     for name, config in configs.items():
         space = hypotheses_of(core.prior, config.kinds)
         right, log_true, z_true, seconds, material, gap, colour, spread = [], [], [], [], [], [], [], []

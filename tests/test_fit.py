@@ -480,6 +480,42 @@ def test_shading_fields_density_is_the_marginal_gaussian_and_its_fit_recovers_th
     assert figures["correlation_area_window"] > 3 and figures["correlation_area_after_fields"] < 1.3
 
 
+def test_the_fields_power_tempers_the_pixels_and_leaves_the_fields_prior_as_fitted():
+    """``--noise fields`` scores log of the integral of N(r; B w, sigma^2 I)^beta N(w; 0, tau^2) dw: the power
+    tempers the pixels given the field, not the field's prior. Checked by quadrature over one field (a
+    constant on the object's pixels) on two residuals (the constant cancels in their difference), against
+    the configuration the model folder gives (white scale sigma / sqrt(beta), power 1); the whole marginal
+    raised to beta (the field's prior tempered too) differs."""
+    from scipy.integrate import quad
+
+    from mitsuba_p3.fit.fields import FieldsNoise, field_log_likelihood, loadings, monomials
+
+    rng = np.random.default_rng(3)
+    size, sigma, tau, beta = (6, 7), 0.05, 0.04, 0.1
+    masks = np.zeros((2,) + size)
+    masks[0, 1:4, 2:6] = 1
+    basis = monomials(*size, 0)
+    loading = loadings(0, "achromatic")
+    variances = np.array([[tau ** 2], [0.0]]) + 1e-12        # a field on the object only
+
+    def integral(r):
+        def integrand(w):
+            pixels = np.sum(-0.5 * (r - w * masks[0][..., None]) ** 2 / sigma ** 2 - 0.5 * np.log(2 * np.pi * sigma ** 2))
+            return np.exp(beta * pixels - 0.5 * (w / tau) ** 2 - offset) / (
+                np.sqrt(2 * np.pi) * tau)
+        return np.log(quad(integrand, -0.5, 0.5, points=[0.0, 0.2], limit=200)[0]) + offset
+
+    first = rng.normal(0, sigma, size + (3,)) + 0.03 * masks[0][..., None]
+    second = first + 0.15 * masks[0][..., None]              # a shade off: what the field is for
+    offset = beta * (-0.5 * np.sum(first ** 2) / sigma ** 2 - first.size / 2 * np.log(2 * np.pi * sigma ** 2))
+    truth = integral(first) - integral(second)
+    form = FieldsNoise(sigma, (tau, 0.0), 0, beta, size, "achromatic")
+    ours = [field_log_likelihood(r, masks, form.white_sigma, variances, basis, loading=loading) for r in (first, second)]
+    assert ours[0] - ours[1] == pytest.approx(truth, rel=1e-4)
+    whole = [beta * field_log_likelihood(r, masks, sigma, variances, basis, loading=loading) for r in (first, second)]
+    assert abs((whole[0] - whole[1]) - truth) > 1.0
+
+
 def test_shading_fields_forgive_a_wrong_shade_and_keep_the_outline():
     """Under the shading fields' form a render whose object is a shade off costs little, while the same
     object one pixel off (or absent) costs what the independent Gaussian charges, or more: the fields

@@ -683,7 +683,9 @@ def test_the_shading_fields_likelihood_traces_the_object_it_scores(fitted):
     form = FieldsNoise.from_dict(fitted.noise.fields)
     assert form.regions == FIT_REGIONS and len(form.taus) == 2 * FIT_REGIONS and 0 < form.power <= 1 and form.sigma > 0
     likelihood = default_likelihood(fitted, "p3", noise="fields")
-    assert likelihood.fields == form.taus and likelihood.power == form.power
+    # the power tempers the white part alone (mitsuba_p3.fit.fields, "The power")
+    assert likelihood.fields == form.taus and likelihood.power == 1.0
+    assert likelihood.sigma == pytest.approx(form.sigma / np.sqrt(form.power))
     core = PosteriorCore(fitted, likelihood, "mitsuba", 120, 160)
     image = make_renderer_image(fitted)
     window = core.window_for(image, (48, 64))
@@ -1268,8 +1270,8 @@ def test_sbc_runs_on_the_phong_model_and_resumes(fitted, tmp_path):
 
 
 def test_sbc_of_the_shading_fields_simulates_fields_on_the_window_the_sampler_scores(fitted, tmp_path):
-    """SBC under ``--noise fields`` checks the sampler on the fields' own model: power 1 with sigma and the
-    taus divided by sqrt(power); the simulated image is the white-noise one plus fields on the true
+    """SBC under ``--noise fields`` checks the sampler on the fields' own model: power 1 with sigma divided by
+    sqrt(power) and the taus as fitted (the likelihood's own form); the simulated image is the white-noise one plus fields on the true
     object's pixels and its shadow inside the scoring window the simulation chose, nowhere else, and
     the sampler is handed that window."""
     from mitsuba_p3.evaluate.sbc import model_core, run_sbc, simulate, simulate_scored, smc_sampler
@@ -1279,7 +1281,7 @@ def test_sbc_of_the_shading_fields_simulates_fields_on_the_window_the_sampler_sc
     form = FieldsNoise.from_dict(fitted.noise.fields)
     core = model_core(fitted.root, resolution=RES, noise="fields")
     assert core.config.power == 1.0 and core.config.sigma == pytest.approx(form.sigma / np.sqrt(form.power))
-    np.testing.assert_allclose(core.config.fields, np.asarray(form.taus) / np.sqrt(form.power))
+    np.testing.assert_allclose(core.config.fields, form.taus)
     window = (24, 32)
     for seed in range(8):
         white, _, _ = simulate(core, np.random.default_rng(seed))

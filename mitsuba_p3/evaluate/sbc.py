@@ -259,7 +259,8 @@ def model_core(model_dir, renderer: str = "mitsuba", resolution: tuple[int, int]
     """The :class:`~mitsuba_p3.infer.model.PosteriorCore` of a fitted model whose likelihood is the one its
     own images are simulated from: the fitted Gaussian at sigma / sqrt(power), power 1 (``noise``:
     ``fitted``, the power 1 / correlation area, or ``sandwich``, the pose's), or the shading fields' form
-    (``fields``) with its sigma and taus divided by sqrt(power)."""
+    (``fields``) with its sigma divided by sqrt(power) and its taus as fitted (the likelihood's own form,
+    :func:`~mitsuba_p3.infer.posterior.default_likelihood`)."""
     from ..errors import FitError
     from ..fit.model import FittedModel
     from ..infer.likelihood import LikelihoodConfig
@@ -274,10 +275,8 @@ def model_core(model_dir, renderer: str = "mitsuba", resolution: tuple[int, int]
             raise FitError(f"{model_dir} has no shading fields: refit its noise stage "
                            "(mitsuba-p3 fit ... --stages noise)")
         form = FieldsNoise.from_dict(model_noise.fields)
-        scale = 1.0 / np.sqrt(form.power)
-        likelihood = LikelihoodConfig("p3", sigma=form.sigma * scale, fields=tuple(t * scale for t in form.taus),
-                                      fields_degree=form.degree, fields_channels=form.channels,
-                                      shadows=model_noise.shadows)
+        likelihood = LikelihoodConfig("p3", sigma=form.white_sigma, fields=form.taus, fields_degree=form.degree,
+                                      fields_channels=form.channels, shadows=model_noise.shadows)
         return PosteriorCore(fitted, likelihood, renderer, *resolution)
     power = model_noise.power if noise == "fitted" else model_noise.pose_power
     if power is None:

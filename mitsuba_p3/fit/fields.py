@@ -49,6 +49,17 @@ outline's own mismatch) is handled as before, by a power: beta = 1 / (correlatio
 of the residuals left after the fields' posterior mean), the composite likelihood's
 magnitude adjustment for the remaining correlation.
 
+**The power.** The correlation beta stands for is the white part's, so beta tempers the
+pixels given the fields, and the fields keep their fitted prior:
+
+    integral of N(r; B w, sigma^2 I)^beta N(w; 0, T) dw  =  const * N(r; 0, (sigma^2 / beta) I + B T B'),
+
+the same density at a white scale sigma / sqrt(beta) (:attr:`FieldsNoise.white_sigma`) with
+the taus as fitted; the constant is the same for every hypothesis of a window. Raising the
+whole marginal to beta instead would temper the fields' prior too, as if their scales were
+tau / sqrt(beta), so that the object's field can paint a sphere's shading onto a flat disc
+for nearly nothing (docs/notebook.md, "The fields' power belongs to the pixels").
+
 Everything here takes an array module ``xp`` (numpy for the fit, jax.numpy for the
 sampler), and batches over leading axes.
 """
@@ -81,6 +92,11 @@ class FieldsNoise:
     power: float               # 1 / the correlation area the fields leave
     window: tuple              # (height, width) of the windows it was fitted on
     channels: str = "independent"   # CHANNELS: how the fields load on r, g, b (module docstring)
+
+    @property
+    def white_sigma(self) -> float:
+        """The white part's scale in the likelihood: sigma / sqrt(power) (module docstring, "The power")."""
+        return self.sigma / float(np.sqrt(self.power))
 
     def as_dict(self) -> dict:
         return {**asdict(self), "taus": list(self.taus), "window": list(self.window)}

@@ -24,7 +24,8 @@ With ``fields`` (``--noise fields``) the mismatch is tied to what the hypothesis
 shading fields on its own object's pixels, on the floor its shadow changes and (in forms fitted
 with three regions) on the rest of the floor, integrated out (:mod:`mitsuba_p3.fit.fields`), so a
 wrong shade or the image's own lighting costs little while the outline and the object's presence
-keep their evidence; beta is the power of the correlation the fields leave. This form
+keep their evidence; beta, the power of the correlation the fields leave, tempers the pixels given
+the fields and not the fields' prior (a white scale sigma / sqrt(beta), power 1). This form
 needs each render's object pixels, which :class:`~mitsuba_p3.infer.model.PosteriorCore` traces from
 the pose (``objects`` of :func:`score`).
 

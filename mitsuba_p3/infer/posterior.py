@@ -196,9 +196,10 @@ def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | No
     - ``robust``: the same stage's inlier/outlier mixture (sigma, outlier weights, beta, shadows);
     - ``spectral``: the same stage's correlated Gaussian field (the residual windows' power spectrum and
       the power of what correlation whitening leaves), renders with hard shadows;
-    - ``fields``: the same stage's shading fields on the hypothesis's object and shadow, marginalised
-      (:mod:`mitsuba_p3.fit.fields`: sigma, the fields' scales and channel loading, the power of what they
-      leave), hard shadows.
+    - ``fields``: the same stage's shading fields on the hypothesis's object, its shadow and the rest of the
+      floor, marginalised (:mod:`mitsuba_p3.fit.fields`: the fields' scales and channel loading as fitted,
+      the power of the correlation they leave tempering the white part alone: sigma / sqrt(power), power 1),
+      hard shadows.
     """
     from ..errors import ConfigError
 
@@ -228,7 +229,9 @@ def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | No
         from ..fit.fields import FieldsNoise
 
         fields = FieldsNoise.from_dict(model.fields)
-        return LikelihoodConfig(kind=kind, sigma=fields.sigma, power=fields.power, shadows=model.shadows,
+        # the power tempers the pixels given the fields, not the fields' prior: the white part's variance
+        # sigma^2 / power, the taus as fitted (mitsuba_p3.fit.fields, "The power")
+        return LikelihoodConfig(kind=kind, sigma=fields.white_sigma, power=1.0, shadows=model.shadows,
                                 fields=fields.taus, fields_degree=fields.degree, fields_channels=fields.channels)
     if model.gaussian_sigma is None:
         raise ConfigError(f"{fitted.root}/noise.json predates the Gaussian noise form; refit it with "
