@@ -6,7 +6,7 @@ marginal, ``beta * log N(r; 0, sigma^2 I + B T B')`` (the form before 2026-11-27
 prior tempered too, as if their scales were tau / sqrt(beta)), or the pixels given the fields,
 ``log N(r; 0, (sigma^2 / beta) I + B T B')`` up to a constant (the fields keep their fitted prior; the form
 now). For one image this scores, under both and under the fitted Gaussian: the truth (its labelled pose and
-the fit's material of its class), the truth painted black (colour 0.02: a field would have to supply all of
+the fit's material of its class, or of its kind where the fit never saw its colour), the truth painted black (colour 0.02: a field would have to supply all of
 its shade), and the best draw of each shape class in a posterior saved by ``mitsuba-p3 infer``. A draw of
 the wrong shape that outscores the truth's best draws only under one reading is that reading's doing.
 
@@ -46,7 +46,12 @@ def main() -> None:
     shots = [s for s in dataset.split(args.split) if f"{s.class_name}/{s.file.stem}" == args.image]
     if not shots:
         parser.error(f"no image {args.image} in {args.dataset}'s {args.split} split")
-    image, truth = dataset.image(shots[0]), shot_params(shots[0], fitted.materials)
+    shot = shots[0]
+    materials = dict(fitted.materials)
+    key = f"{shot.cls.colour}-{shot.cls.material}"
+    if key not in materials:   # a colour the fit never saw: the truth takes a fitted material of its kind
+        materials[key] = next(v for k, v in fitted.materials.items() if k.endswith("-" + shot.cls.material))
+    image, truth = dataset.image(shot), shot_params(shot, materials)
     posterior = az.from_netcdf(args.posterior).posterior
     draws = posterior["z"].values.reshape(-1, posterior["z"].shape[-1])
     kappa = posterior["kappa"].values.reshape(-1)
