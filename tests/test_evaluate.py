@@ -180,6 +180,23 @@ def test_run_folder_refuses_other_settings(bench, tmp_path):
         evaluate(bench / "data", bench / "model", tmp_path, changed)
 
 
+def test_a_run_folder_of_the_fields_earlier_form_is_refused(bench, tmp_path):
+    """Posteriors cached under the shading fields' earlier form (the power on the whole marginal; its run.json
+    names no ``fields_power_on``) are not resumed under today's: the folder is refused; one of today's resumes."""
+    config = EvaluationConfig(likelihoods=("p3",), sampler=TINY, noise="fields")
+    dataset = load_dataset(bench / "data")
+    check_run(tmp_path, dataset, bench / "model", config)
+    assert json.loads((tmp_path / "run.json").read_text())["fields_power_on"] == "pixels"
+    (tmp_path / "posteriors" / "p3").mkdir(parents=True)
+    (tmp_path / "posteriors" / "p3" / "0.npz").write_bytes(b"")             # a cached posterior, as far as run.json cares
+    check_run(tmp_path, dataset, bench / "model", config)
+    record = json.loads((tmp_path / "run.json").read_text())
+    del record["fields_power_on"]
+    (tmp_path / "run.json").write_text(json.dumps(record))
+    with pytest.raises(EvaluationError, match="fields_power_on"):
+        check_run(tmp_path, dataset, bench / "model", config)
+
+
 def test_a_run_with_tuple_settings_resumes(bench, tmp_path):
     """Settings that are tuples (the SMC's window) read back from run.json as lists: a rerun with the
     same settings over cached posteriors resumes rather than being refused as 'other settings'."""

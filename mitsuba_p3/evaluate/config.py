@@ -54,6 +54,11 @@ class EvaluationConfig:
 
     def cache_key(self) -> dict:
         """The settings a cached posterior depends on."""
-        return {"renderer": self.renderer, "sampler": asdict(self.sampler), "keep_draws": self.keep_draws,
-                "sigma": self.sigma, "noise": self.noise}
+        key = {"renderer": self.renderer, "sampler": asdict(self.sampler), "keep_draws": self.keep_draws,
+               "sigma": self.sigma, "noise": self.noise}
+        if self.noise == "fields":
+            from ..fit.fields import POWER_ON
+
+            key["fields_power_on"] = POWER_ON    # a folder of the fields' earlier form has none: refused
+        return key
 

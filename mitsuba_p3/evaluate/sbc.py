@@ -316,7 +316,11 @@ def calibrate_model(model_dir, out, images: int = 200, draws: int = 99, resoluti
     # a cache of one noise form is not resumed under another (the fitted form's tags name none: the first caches')
     tag = settings_tag(config)
     if noise != "fitted":
-        tag = json.dumps({"noise": noise, **json.loads(tag)}, sort_keys=True)
+        from ..fit.fields import POWER_ON
+
+        # the fields' form records where its power acts (a cache of the earlier form has no such entry)
+        form = {"noise": noise, **({"fields_power_on": POWER_ON} if noise == "fields" else {})}
+        tag = json.dumps({**form, **json.loads(tag)}, sort_keys=True)
     result = run_sbc(core, smc_sampler(core, config), images, draws, seed, cache=out / "cache.npz", progress=progress,
                      tag=tag, window=config.window)
     summary = {"model": str(model_dir), "noise": noise, "likelihood_sigma": core.config.sigma,

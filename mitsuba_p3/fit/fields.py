@@ -80,6 +80,10 @@ CHANNELS = ("independent", "achromatic", "mixed")
 FIT_CHANNELS = "achromatic"
 # how many of REGIONS the noise stage fits fields on (2: object and shadow; 3: and the rest of the floor)
 FIT_REGIONS = 3
+# where the likelihood's power acts (module docstring, "The power"): on the pixels given the fields; the form
+# before 2026-11-27's second change raised the whole marginal to it. Evaluation folders and SBC caches record
+# it, so that one made under the other form is refused rather than resumed
+POWER_ON = "pixels"
 
 
 @dataclass(frozen=True)
