@@ -29,18 +29,20 @@ from mitsuba_p3.infer.posterior import default_likelihood
 from mitsuba_p3.shapes import SHAPES
 
 
-def main() -> None:
-    import arviz as az
-    import jax
-    import jax.numpy as jnp
-
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def add_case_arguments(parser: argparse.ArgumentParser) -> None:
+    """The arguments naming one image and a posterior of it (shared with ``probe_light_turn.py``)."""
     parser.add_argument("dataset")
     parser.add_argument("--model", required=True)
     parser.add_argument("--image", required=True, help="CLASS/NUMBER of the split, e.g. large-gray-rubber-sphere/5")
     parser.add_argument("--posterior", required=True, help="posterior.nc of mitsuba-p3 infer on that image")
     parser.add_argument("--split", default="test", choices=("train", "test"))
-    args = parser.parse_args()
+
+
+def load_case(args, parser: argparse.ArgumentParser):
+    """(data set, fitted model, image, truth, the posterior's positions (n, 15) and shape classes (n,)) of
+    :func:`add_case_arguments`' arguments. The truth takes the fit's material of its class, or of its kind where
+    the fit never saw its colour."""
+    import arviz as az
 
     dataset, fitted = load_dataset(args.dataset), FittedModel(args.model)
     shots = [s for s in dataset.split(args.split) if f"{s.class_name}/{s.file.stem}" == args.image]
@@ -49,25 +51,37 @@ def main() -> None:
     shot = shots[0]
     materials = dict(fitted.materials)
     key = f"{shot.cls.colour}-{shot.cls.material}"
-    if key not in materials:   # a colour the fit never saw: the truth takes a fitted material of its kind
+    if key not in materials:
         materials[key] = next(v for k, v in fitted.materials.items() if k.endswith("-" + shot.cls.material))
-    image, truth = dataset.image(shot), shot_params(shot, materials)
     posterior = az.from_netcdf(args.posterior).posterior
     draws = posterior["z"].values.reshape(-1, posterior["z"].shape[-1])
-    kappa = posterior["kappa"].values.reshape(-1)
+    return (dataset, fitted, dataset.image(shot), shot_params(shot, materials), draws,
+            posterior["kappa"].values.reshape(-1))
+
+
+def position_of(prior, params: dict) -> np.ndarray:
+    """The unconstrained position of natural parameters whose shape class is ``params["kappa"]``."""
+    probabilities = np.full(len(SHAPES), 0.01)
+    probabilities[int(params["kappa"])] = 1.0 - 0.01 * (len(SHAPES) - 1)
+    return prior.unconstrain({**{k: np.asarray(v) for k, v in params.items()}, "class_probabilities": probabilities})
+
+
+def main() -> None:
+    import jax
+    import jax.numpy as jnp
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_case_arguments(parser)
+    args = parser.parse_args()
+    dataset, fitted, image, truth, draws, kappa = load_case(args, parser)
     pixels = default_likelihood(fitted, "p3", noise="fields")
-    beta = FittedModel(args.model).noise.fields["power"]
+    beta = fitted.noise.fields["power"]
     forms = {"fields, pixels tempered (now)": pixels,
              "fields, whole marginal tempered (before)": replace(pixels, sigma=pixels.sigma * np.sqrt(beta), power=beta),
              "fitted": default_likelihood(fitted, "p3", noise="fitted")}
 
-    def position(params: dict) -> np.ndarray:
-        probabilities = np.full(len(SHAPES), 0.01)
-        probabilities[int(params["kappa"])] = 1.0 - 0.01 * (len(SHAPES) - 1)
-        return fitted.prior.unconstrain({**{k: np.asarray(v) for k, v in params.items()},
-                                         "class_probabilities": probabilities})
-
-    fixed = {"truth": position(truth), "truth painted black": position({**truth, "colour": np.full(3, 0.02)})}
+    fixed = {"truth": position_of(fitted.prior, truth),
+             "truth painted black": position_of(fitted.prior, {**truth, "colour": np.full(3, 0.02)})}
     report = {"image": args.image, "fields_power": beta}
     for name, config in forms.items():
         core = PosteriorCore(fitted, config, "mitsuba", *dataset.resolution)

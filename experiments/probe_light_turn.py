@@ -18,39 +18,26 @@ import json
 
 import numpy as np
 
-from mitsuba_p3.benchmarks.dataset import load_dataset
-from mitsuba_p3.fit.model import FittedModel, shot_params
+from mitsuba_p3.fit.model import FittedModel
 from mitsuba_p3.fit.noise import SCORING_WINDOW
 from mitsuba_p3.infer.model import PosteriorCore
 from mitsuba_p3.infer.posterior import default_likelihood
 from mitsuba_p3.shapes import SHAPES
+from probe_fields_power import add_case_arguments, load_case, position_of
 
 
 def main() -> None:
-    import arviz as az
     import jax
     import jax.numpy as jnp
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("dataset")
-    parser.add_argument("--model", required=True)
-    parser.add_argument("--image", required=True, help="CLASS/NUMBER of the test split")
-    parser.add_argument("--posterior", required=True, help="posterior.nc of mitsuba-p3 infer on that image")
+    add_case_arguments(parser)
     parser.add_argument("--step", type=int, default=30, help="degrees between turns")
     parser.add_argument("--noise", default="fields")
     args = parser.parse_args()
-
-    dataset = load_dataset(args.dataset)
-    shots = [s for s in dataset.split("test") if f"{s.class_name}/{s.file.stem}" == args.image]
-    if not shots:
-        parser.error(f"no image {args.image} in {args.dataset}'s test split")
-    image = dataset.image(shots[0])
-    posterior = az.from_netcdf(args.posterior).posterior
-    draws = posterior["z"].values.reshape(-1, posterior["z"].shape[-1])
-    kappa = posterior["kappa"].values.reshape(-1)
+    dataset, _, image, truth, draws, kappa = load_case(args, parser)
     for turn in range(0, 360, args.step):
-        fitted = FittedModel(args.model)
-        truth = shot_params(shots[0], fitted.materials)
+        fitted = FittedModel(args.model)                  # a fresh model per turn: its scene is replaced below
         scene = copy.deepcopy(fitted.scene())
         c, s = np.cos(np.radians(turn)), np.sin(np.radians(turn))
         centre = np.array([*truth["shift"], 0.0])
@@ -61,16 +48,9 @@ def main() -> None:
         core = PosteriorCore(fitted, default_likelihood(fitted, "p3", noise=args.noise), "mitsuba", *dataset.resolution)
         observation = core.observe(image, core.window_for(image, SCORING_WINDOW))
         score = jax.jit(jax.vmap(lambda z: core.log_likelihood(z, observation)))
-
-        def position(params: dict) -> np.ndarray:
-            probabilities = np.full(len(SHAPES), 0.01)
-            probabilities[int(params["kappa"])] = 1.0 - 0.01 * (len(SHAPES) - 1)
-            return fitted.prior.unconstrain({**{k: np.asarray(v) for k, v in params.items()},
-                                             "class_probabilities": probabilities})
-
-        candidates = [position({**truth, **{k: np.asarray(v, np.float32) for k, v in m.items()}})
+        candidates = [position_of(fitted.prior, {**truth, **{k: np.asarray(v, np.float32) for k, v in m.items()}})
                       for key, m in fitted.materials.items() if key.startswith(("gray", "brown"))]
-        candidates.append(position({**truth, "colour": np.asarray(truth["colour"]) * 0.6}))
+        candidates.append(position_of(fitted.prior, {**truth, "colour": np.asarray(truth["colour"]) * 0.6}))
         of_truth = np.asarray(score(jnp.asarray(np.stack(candidates), jnp.float32)))
         of_draws = np.asarray(score(jnp.asarray(draws, jnp.float32)))
         print(json.dumps({"turn_degrees": turn, "truth, best material": round(float(of_truth.max()), 1),
