@@ -104,6 +104,7 @@ def main() -> None:
             mine = rows.log_evidence[[SHAPES[c] == shot.cls.shape for c in space.classes[rows.index]]]
             gap.append(float(np.ptp(mine)) if len(mine) > 1 else np.nan)
             print(f"{name} {i + 1}/{len(shots)} {shot.class_name}: {'ok' if right[-1] else 'WRONG'} "
+                  f"(p true {np.exp(log_true[-1]):.3f}) "
                   f"{seconds[-1]:.1f} s, island gap {gap[-1]:.1f}, colour {'ok' if colour[-1] else 'WRONG'} "
                   f"(spread {spread[-1]:.3f})", flush=True)
         report[name] = {"shape": float(np.mean(right)), "material": float(np.mean(material)),

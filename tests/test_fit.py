@@ -60,6 +60,21 @@ def test_the_observation_model_picks_the_lobe_of_every_render_of_the_model():
         ReproduceConfig(observation="pathtraced")
 
 
+def test_fit_light_falloff_is_kept_in_the_fitted_world():
+    """fit --light-falloff D: a fixed global of the fit (not optimised) that the fitted world renders with; 0 and
+    an old model folder without it mean no falloff; a negative distance is refused."""
+    from mitsuba_p3.errors import ConfigError
+    from mitsuba_p3.fit.scene_opt import GLOBAL_KEYS, SceneFit, initial_globals
+
+    globals_ = initial_globals(SceneOptConfig(**TINY_FIT, light_falloff=0.5))
+    assert "light_falloff" not in GLOBAL_KEYS
+    assert SceneFit(globals_, {}, [], 0.0, {}, {}).scene().light_falloff == pytest.approx(0.5)
+    del globals_["light_falloff"]
+    assert SceneFit(globals_, {}, [], 0.0, {}, {}).scene().light_falloff == 0.0
+    with pytest.raises(ConfigError, match="light_falloff"):
+        SceneOptConfig(**TINY_FIT, light_falloff=-1.0)
+
+
 @pytest.mark.slow
 def test_a_microfacet_fit_learns_and_keeps_its_lobe_in_the_model_folder(tiny_dataset, tmp_path):
     """The whole scene stage with the GGX lobe: it learns, and the folder's scene and scene.xml carry the lobe."""

@@ -81,6 +81,25 @@ def test_soft_shadows_agree_with_mitsuba(shape):
     assert figures["fraction_over_2_255"] <= 0.005, figures
 
 
+def test_light_falloff_agrees_with_mitsuba():
+    """Inverse-square light falloff (render/falloff.py): one formula in both renderers (>= 40 dB), and it changes
+    the image (a light nearer the floor than the reference distance brightens it)."""
+    rng = np.random.default_rng(9)
+    scene = load_scene(SCENES / "room.xml", {"shape": "cylinder"}).replace(shadows=True, light_falloff=0.5)
+    params = {k: v[0] for k, v in random_object_params(rng, 1).items()}
+    params["kappa"] = np.int32(2)
+    images, ids = [], []
+    for kind in ("mitsuba", "jax"):
+        renderer = make_renderer(scene, kind, height=120, width=160)
+        images.append(renderer.render(params))
+        ids.append(renderer.surface_ids(params))
+    none = make_renderer(scene.replace(light_falloff=0.0), "jax", height=120, width=160).render(params)
+    assert np.abs(images[1] - none).max() > 0.02, "the falloff must change the image"
+    figures = agreement(images[0], images[1], ids[0], ids[1])
+    assert figures["psnr_interior_db"] >= 40, figures
+    assert figures["fraction_over_2_255"] <= 0.005, figures
+
+
 @pytest.mark.parametrize("shape", ["sphere", "cube", "cylinder"])
 def test_the_hemisphere_term_agrees_with_mitsuba(shape):
     """A sky and ground (render/hemisphere.py): one formula in both renderers (>= 40 dB), on a shiny object."""

@@ -112,6 +112,27 @@ def test_soft_shadows_lie_between_lit_and_hard(scene):
     assert np.abs(wider - image).max() > 0.01
 
 
+def test_light_falloff_is_inverse_square(scene):
+    """With light_falloff d0, a floor point lit by one light straight above it at height h receives (d0 / h)^2
+    of the light's diffuse term without falloff; d0 = 0 is the paper's light exactly."""
+    from mitsuba_p3.scene import PointLight
+
+    height = 0.4
+    one = scene.replace(lights=[PointLight(np.array([0.15, 0.1, height]), np.array([0.3, 0.3, 0.3]))],
+                        ambient_light=np.zeros(3), shadows=False)
+    renderer = make_renderer(one, height=H, width=W)
+    plain = renderer.render()
+    assert np.array_equal(renderer.render({"light_falloff": np.float32(0.0)}), plain)
+    point = make_renderer(one.replace(light_falloff=0.2), height=H, width=W)
+    assert point.falloff and not renderer.falloff
+    image = point.render()
+    # the pixel that sees the floor point under the light: where the unfalloffed render is brightest
+    row, col = np.unravel_index(np.argmax(plain.sum(axis=2)), plain.shape[:2])
+    assert image[row, col].sum() == pytest.approx(plain[row, col].sum() * (0.2 / height) ** 2, rel=0.03)
+    # the farther floor falls off faster than the point under the light
+    assert (image / np.maximum(plain, 1e-6))[plain.sum(axis=2) > 0.05].min() < (0.2 / height) ** 2
+
+
 def _mitsubas_own_render(mi, xml) -> np.ndarray:
     """A saved scene XML rendered by mi.load_file + its phong_integrator (Embree, instances) at 120x160."""
     mi_scene = mi.load_file(str(xml))
@@ -131,6 +152,21 @@ def test_soft_shadows_match_mitsubas_own_integrator(mi, tmp_path):
     assert load_scene(tmp_path / "soft.xml").light_radius == pytest.approx(0.03)
     fast = make_renderer(scene, height=120, width=160).render()
     diff = np.abs(fast - _mitsubas_own_render(mi, tmp_path / "soft.xml")).max(axis=2)
+    assert (diff > 2 / 255).mean() <= 0.01, f"{(diff > 2 / 255).mean():.4%} of pixels differ"
+
+
+def test_light_falloff_matches_mitsubas_own_integrator(mi, tmp_path):
+    """The plugin (phong_integrator with light_falloff, through Embree on the XML) and the renderer agree, and
+    the saved XML keeps the falloff."""
+    from mitsuba_p3.scene import save_scene
+
+    scene = load_scene(SCENES / "room.xml", {"shape": "sphere"}).replace(shadows=True, light_falloff=0.5)
+    save_scene(scene, tmp_path / "falloff.xml")
+    assert load_scene(tmp_path / "falloff.xml").light_falloff == pytest.approx(0.5)
+    fast = make_renderer(scene, height=120, width=160).render()
+    plain = make_renderer(scene.replace(light_falloff=0.0), height=120, width=160).render()
+    assert np.abs(fast - plain).max() > 0.02
+    diff = np.abs(fast - _mitsubas_own_render(mi, tmp_path / "falloff.xml")).max(axis=2)
     assert (diff > 2 / 255).mean() <= 0.01, f"{(diff > 2 / 255).mean():.4%} of pixels differ"
 
 
@@ -205,6 +241,7 @@ def test_memory_flat_over_thousands_of_renders(scene):
     ({"scale": np.array([0.01, -0.01, 0.01], np.float32)}, "positive"),
     ({"light_intensity": np.ones((2, 3), np.float32)}, "light_position"),
     ({"light_radius": np.float32(-0.01)}, "light_radius"),
+    ({"light_falloff": np.float32(-0.1)}, "light_falloff"),
     ({"colur": np.ones(3, np.float32)}, "unknown renderer parameter"),
 ])
 def test_bad_parameters_raise(scene, update, message):

@@ -75,6 +75,10 @@ def fit(
     light_radius: float = typer.Option(0.0, help="Widen every light into a disc of this radius (metres): soft "
                                                  "shadows, in the fit and in every render of the model (0: point "
                                                  "lights, the paper's)."),
+    light_falloff: float = typer.Option(0.0, help="Lights whose intensity falls off as (D / distance)^2, D this "
+                                                  "reference distance in metres (0.5: about the lights' distance "
+                                                  "from the table), in the fit and every render of the model (0: "
+                                                  "no falloff, the paper's)."),
 ) -> None:
     """Training stage: scene optimisation, feature selection and priors -> a fitted-model folder."""
     from ..fit.model import fit_model
@@ -82,7 +86,7 @@ def fit(
 
     config = SceneOptConfig(epochs=epochs, material_passes=material_passes, global_passes=global_passes,
                             learning_rate=learning_rate, shadows=shadows, light_radius=light_radius,
-                            observation=observation)
+                            light_falloff=light_falloff, observation=observation)
     # one bar named by the stage; written to a file (a background fit's log) it prints plain lines
     bar, track_stage = phase_progress_bar("fit")
 

@@ -13,12 +13,13 @@ learning rate of 0.01 can move it between rubber (~4) and metal (~40) within
 the schedule; every other parameter is optimised directly and projected back
 to its valid range after each step.
 
-Three options beyond the paper, all off by default: ``observation="hemisphere"`` also fits the
+Four options beyond the paper, all off by default: ``observation="hemisphere"`` also fits the
 environment's sky and ground radiance with the globals (:mod:`mitsuba_p3.render.hemisphere`),
 ``observation="microfacet"`` gives every surface the GGX microfacet lobe in place of Phong's highlight
-(:mod:`mitsuba_p3.render.lobes`; the same parameters, so the rest of the pipeline is unchanged), and
+(:mod:`mitsuba_p3.render.lobes`; the same parameters, so the rest of the pipeline is unchanged),
 ``light_radius`` widens every light into a disc for soft shadows (fixed, not fitted: visibility has
-no gradient; :mod:`mitsuba_p3.render.soft_shadows`).
+no gradient; :mod:`mitsuba_p3.render.soft_shadows`), and ``light_falloff`` gives the lights the inverse-square
+falloff of physical lights (:mod:`mitsuba_p3.render.falloff`).
 """
 from __future__ import annotations
 
@@ -59,6 +60,10 @@ class SceneOptConfig:
     resolution: tuple = (120, 160)
     shadows: bool = True   # observations have shadows; fit the floor without baking them in
     light_radius: float = 0.0   # metres: lights widened into discs, soft shadows (0: the paper's point lights)
+    # metres: the lights' inverse-square falloff about this reference distance (render/falloff.py; 0: none, the
+    # paper's). The value only sets the unit of the fitted intensities (the light's at that distance): about
+    # the lights' distance from the table keeps them at the paper's scale
+    light_falloff: float = 0.0
     # phong: point lights and a constant ambient term (the paper's); hemisphere: also a fitted sky and ground
     # (render/hemisphere.py)
     observation: str = "phong"
@@ -77,6 +82,8 @@ class SceneOptConfig:
             raise ConfigError(f"unknown observation model {self.observation!r}; choose {' or '.join(OBSERVATIONS)}")
         if not (np.isfinite(self.light_radius) and 0.0 <= self.light_radius <= 0.5):
             raise ConfigError(f"fit light_radius must be in [0, 0.5] metres; got {self.light_radius}")
+        if not (np.isfinite(self.light_falloff) and 0.0 <= self.light_falloff <= 10.0):
+            raise ConfigError(f"fit light_falloff must be in [0, 10] metres (0: no falloff); got {self.light_falloff}")
         object.__setattr__(self, "resolution", tuple(self.resolution))
         if len(self.resolution) != 2 or min(self.resolution) < 1:
             raise ConfigError(f"fit resolution must be (height, width); got {self.resolution}")
@@ -152,6 +159,7 @@ class SceneFit:
                      object=SceneObject("sphere", np.zeros(2), 0.0, np.full(3, 0.035),
                                         PhongMaterial.named("gray", "rubber")),
                      light_radius=float(g.get("light_radius", 0.0)),
+                     light_falloff=float(g.get("light_falloff", 0.0)),
                      sky=np.asarray(g.get("sky", np.zeros(3)), np.float64),
                      ground=np.asarray(g.get("ground", np.zeros(3)), np.float64),
                      lobe=OBSERVATION_LOBES[self.config.get("observation", "phong")])
@@ -173,6 +181,7 @@ def initial_globals(config: SceneOptConfig) -> dict[str, np.ndarray]:
         # Floor albedo = colour x pattern, so the pattern starts at ones (zeros would be black).
         "floor_pattern": np.ones((config.pattern_size, config.pattern_size, 3), np.float32),
         "light_radius": np.float32(config.light_radius),   # fixed, not optimised (visibility has no gradient)
+        "light_falloff": np.float32(config.light_falloff),  # fixed: the model's choice, not a fitted value
         **{key: np.full(3, INITIAL_HEMISPHERE if config.observation == "hemisphere" else 0.0, np.float32)
            for key in HEMISPHERE_KEYS},
     }

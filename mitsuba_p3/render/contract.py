@@ -17,6 +17,8 @@ specular, shininess
 light_position            K, 3        point-light positions, metres
 light_intensity           K, 3        point-light RGB intensities
 light_radius              ()          lights' radius, metres: soft shadows (0: point lights)
+light_falloff             ()          distance d0, metres: intensities fall off as (d0 / d)^2
+                                      (0: no falloff, the paper's lights)
 sky, ground               3, 3        radiance of the environment's upper and lower hemisphere
                                       (the hemisphere term of :mod:`.hemisphere`; 0: point lights only)
 ambient_light             3           A of the ambient term k_a c A
@@ -41,7 +43,7 @@ OBJECT_SHAPES: dict[str, tuple[int, ...]] = {
     "ambient": (), "diffuse": (), "specular": (), "shininess": (),
 }
 GLOBAL_SHAPES: dict[str, tuple[int, ...] | None] = {
-    "light_position": None, "light_intensity": None, "light_radius": (), "sky": (3,), "ground": (3,),
+    "light_position": None, "light_intensity": None, "light_radius": (), "light_falloff": (), "sky": (3,), "ground": (3,),
     "ambient_light": (3,),
     "floor_colour": (3,), "floor_ambient": (), "floor_diffuse": (), "floor_specular": (),
     "floor_shininess": (), "floor_pattern": None,
@@ -49,8 +51,9 @@ GLOBAL_SHAPES: dict[str, tuple[int, ...] | None] = {
 KEYS = tuple(OBJECT_SHAPES) + tuple(GLOBAL_SHAPES)
 FLOAT_KEYS = tuple(k for k in KEYS if k != "kappa")
 # Parameters a renderer differentiates (geometry is sampled, not differentiated).
-# (and the lights' radius, which acts through visibility alone)
-DIFFERENTIABLE_KEYS = tuple(k for k in FLOAT_KEYS if k not in ("shift", "theta", "scale", "light_radius"))
+# (and the lights' radius, which acts through visibility alone, and their falloff distance, a fixed choice)
+DIFFERENTIABLE_KEYS = tuple(k for k in FLOAT_KEYS
+                            if k not in ("shift", "theta", "scale", "light_radius", "light_falloff"))
 
 
 # Peak bytes per rendered pixel, about twice what was measured (`/usr/bin/time`, mitsuba-p3 render at
@@ -147,6 +150,8 @@ def check_params(params: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         raise SceneError("sky and ground radiance must be >= 0")
     if out["light_radius"] < 0:
         raise SceneError(f"light_radius must be >= 0 metres, got {float(out['light_radius'])}")
+    if not out["light_falloff"] >= 0:
+        raise SceneError(f"light_falloff must be >= 0 metres, got {float(out['light_falloff'])}")
     pattern = out["floor_pattern"]
     if pattern.ndim != 3 or pattern.shape[2] != 3:
         raise SceneError(f"floor_pattern must be (H, W, 3), got {pattern.shape}")
@@ -188,6 +193,9 @@ class Renderer:
         # the paper's world pays nothing for it; fixed at construction, like the shadow samples
         self.environment = bool(np.any(self.params["sky"] > 0) or np.any(self.params["ground"] > 0))
         self.lobe = scene.lobe  # the specular lobe (render/lobes.py), fixed at construction
+        # the lights' inverse-square falloff (render/phong.py, :func:`falloff`): traced only where the world
+        # has one, so the paper's lights pay nothing for it; fixed at construction, like the lobe
+        self.falloff = bool(self.params["light_falloff"] > 0)
 
     def merged(self, params: Mapping[str, np.ndarray] | None) -> dict[str, np.ndarray]:
         """The scene's parameters overridden by ``params``, checked."""

@@ -35,6 +35,7 @@ class DrParams:
     light_position: mi.Point3f
     light_intensity: mi.Color3f
     light_radius: mi.Float
+    light_falloff: mi.Float
     sky: mi.Color3f
     ground: mi.Color3f
     ambient_light: mi.Color3f
@@ -95,6 +96,7 @@ def to_drjit(params: Mapping[str, np.ndarray], pattern: mi.TensorXf | None = Non
         light_position=_vec(mi.Point3f, params["light_position"]),
         light_intensity=_vec(mi.Color3f, params["light_intensity"]),
         light_radius=scalar("light_radius"),
+        light_falloff=scalar("light_falloff"),
         sky=_vec(mi.Color3f, np.asarray(params["sky"]).reshape(1, 3)),
         ground=_vec(mi.Color3f, np.asarray(params["ground"]).reshape(1, 3)),
         ambient_light=_vec(mi.Color3f, np.asarray(params["ambient_light"]).reshape(1, 3)),

@@ -35,6 +35,7 @@ import numpy as np
 from ..scene import Camera, Scene
 from ..shapes import SHAPES
 from . import hemisphere
+from .falloff import falloff
 from .lobes import ggx_term, sharpness
 from .contract import OBJECT_SHAPES, Renderer, is_batched, unbatch
 
@@ -270,7 +271,7 @@ def _visibility(intersect, pose, point, normal, to_light, distance, centre, radi
 
 def trace(shape: str, p: Mapping[str, jnp.ndarray], origin, directions, floor_half_size: float,
           shadows: bool, ids: bool = False, bases: bool = False, shadow_pattern=None, environment: bool = True,
-          lobe: str = "phong"):
+          lobe: str = "phong", falloff_on: bool = False):
     """Render one parameter set of a shape class from rays (3, N).
 
     Returns (N, 3) colours, or (N,) surface ids, or with ``bases`` the (N, 4, 3)
@@ -314,6 +315,8 @@ def trace(shape: str, p: Mapping[str, jnp.ndarray], origin, directions, floor_ha
                 intersect, pose, point, normal, l, distance, p["light_position"][k][:, None],
                 p["light_radius"], shadow_pattern))
         intensity = p["light_intensity"][k][:, None]
+        if falloff_on:   # inverse-square falloff about the reference distance (render/phong.py)
+            intensity = intensity * falloff(p["light_falloff"], distance)
         lit_diffuse = lit_diffuse + jnp.where(lit, visible * intensity * cos_light, 0.0)
         if lobe == "ggx":
             half = l + view
@@ -383,7 +386,7 @@ class JaxRenderer(Renderer):
     def _trace_shape(self, shape: str, p, ids: bool = False, bases: bool = False, window=None):
         directions, (height, width) = self._window_rays(window)
         out = trace(shape, p, self._origin, directions, self.floor_half_size, self.shadows, ids, bases,
-                    self.shadow_pattern, self.environment, self.lobe)
+                    self.shadow_pattern, self.environment, self.lobe, self.falloff)
         return out.reshape(height, width, *(() if ids else (4, 3) if bases else (3,)))
 
     def _trace_batch(self, p, bases: bool = False, window=None):

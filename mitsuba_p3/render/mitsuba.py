@@ -33,6 +33,7 @@ import drjit as dr  # noqa: E402  (after the backend has chosen libLLVM)
 from .drjit_params import DrParams, gradients_of, to_drjit, to_drjit_pattern  # noqa: E402
 from . import hemisphere  # noqa: E402
 from .lobes import ggx_term  # noqa: E402
+from .falloff import falloff  # noqa: E402
 from .phong import SHADOW_OFFSET, half_vector, phong_terms, pixel_centre_rays  # noqa: E402
 
 _BACKEND = jit_backend()  # renders open a fresh scope of the chosen variant's backend
@@ -371,6 +372,8 @@ class MitsubaRenderer(Renderer):
                                                dr.detach(p.light_radius), valid & (cos_light > 0))
                 diffuse_term = diffuse_term * visible
                 specular_term = specular_term * visible
+            if self.falloff:   # inverse-square falloff about the reference distance (render/phong.py)
+                intensity = intensity * falloff(per_ray(mi.Float, p.light_falloff), distance)
             lit_diffuse += intensity * diffuse_term
             lit_specular += intensity * specular_term
         # the environment as two hemispheres (render/hemisphere.py): zero unless the world has a sky or ground

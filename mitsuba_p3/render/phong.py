@@ -223,9 +223,14 @@ class PhongIntegrator(mi.SamplingIntegrator):
        - |spectrum|
        - Radiance of the environment above and below the horizon, added to the diffuse and specular
          light sums (:mod:`mitsuba_p3.render.hemisphere`). (Default: 0, 0)
+     * - light_falloff
+       - |float|
+       - A reference distance d0 (metres): every light's intensity falls off as (d0 / d)^2 with its
+         distance d, as a physical light's does (:func:`falloff`). 0: no falloff, the Phong model's
+         convention and the paper's. (Default: 0)
 
     Every point light is evaluated at every hit (Mitsuba's ``direct`` picks one at
-    random), with the Phong model's convention of no distance fall-off, and rays
+    random), with no distance fall-off unless ``light_falloff`` asks for it, and rays
     go through pixel centres, so an image is a deterministic function of the scene
     parameters: one sample per pixel suffices and ``spp`` is ignored. Surfaces must
     use the ``phong`` BSDF.
@@ -236,6 +241,7 @@ class PhongIntegrator(mi.SamplingIntegrator):
         self.ambient = mi.Color3f(props.get("ambient", 1.0))
         self.shadows = bool(props.get("shadows", False))
         self.light_radius = float(props.get("light_radius", 0.0))
+        self.light_falloff = float(props.get("light_falloff", 0.0))
         self.sky = mi.Color3f(props.get("sky", 0.0))
         self.ground = mi.Color3f(props.get("ground", 0.0))
         self.environment = bool(dr.any(self.sky > 0) | dr.any(self.ground > 0))
@@ -286,6 +292,10 @@ class PhongIntegrator(mi.SamplingIntegrator):
                         shadow_ray = mi.Ray3f(origin, dr.normalize(target - origin), dr.norm(target - origin))
                         visible += dr.select(scene.ray_test(shadow_ray, lit), 0.0, 1.0 / len(self.pattern))
                     value = value * visible
+            if self.light_falloff > 0:
+                from .falloff import falloff
+
+                value = value * falloff(self.light_falloff, distance)
             result += intensity * value
         return dr.select(valid, dr.clip(result, 0.0, 1.0), 0.0), valid
 
@@ -306,7 +316,7 @@ class PhongIntegrator(mi.SamplingIntegrator):
 
     def to_string(self):
         return (f"PhongIntegrator[ambient={self.ambient}, shadows={self.shadows}, "
-                f"light_radius={self.light_radius}]")
+                f"light_radius={self.light_radius}, light_falloff={self.light_falloff}]")
 
 
 _REGISTERED = False

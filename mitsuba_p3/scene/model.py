@@ -175,6 +175,9 @@ class Scene:
     object: SceneObject = field(default_factory=SceneObject)
     shadows: bool = False
     light_radius: float = 0.0   # metres; > 0 softens the shadows (render/soft_shadows.py)
+    # metres; > 0: each light's intensity falls off as (light_falloff / distance)^2, so an intensity is the
+    # light's at that distance (render/phong.py, "falloff"); 0: no falloff, the paper's point lights
+    light_falloff: float = 0.0
     # radiance of the environment above and below the horizon (render/hemisphere.py); 0: point lights only
     sky: np.ndarray = field(default_factory=lambda: np.zeros(3))
     ground: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -190,6 +193,7 @@ class Scene:
             light.intensity = _vector(light.intensity, 3, f"light {i} intensity", 0.0)
         self.ambient_light = _vector(self.ambient_light, 3, "ambient light", 0.0)
         self.light_radius = _number(self.light_radius, "light radius", 0.0)
+        self.light_falloff = _number(self.light_falloff, "light falloff distance", 0.0)
         self.sky = _vector(self.sky, 3, "sky radiance", 0.0)
         self.ground = _vector(self.ground, 3, "ground radiance", 0.0)
         check_lobe(self.lobe)
@@ -231,6 +235,7 @@ class Scene:
             "light_position": np.array([l.position for l in self.lights], np.float32),
             "light_intensity": np.array([l.intensity for l in self.lights], np.float32),
             "light_radius": np.float32(self.light_radius),
+            "light_falloff": np.float32(self.light_falloff),
             "sky": np.asarray(self.sky, np.float32),
             "ground": np.asarray(self.ground, np.float32),
             "ambient_light": np.asarray(self.ambient_light, np.float32),

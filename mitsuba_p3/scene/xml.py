@@ -60,6 +60,8 @@ def scene_to_xml(scene: Scene, description: str = "") -> str:
     _el(integrator, "boolean", name="shadows", value=str(bool(scene.shadows)).lower())
     if scene.light_radius > 0:
         _el(integrator, "float", name="light_radius", value=fmt(scene.light_radius))
+    if scene.light_falloff > 0:
+        _el(integrator, "float", name="light_falloff", value=fmt(scene.light_falloff))
     if np.any(scene.sky > 0) or np.any(scene.ground > 0):
         _el(integrator, "rgb", name="sky", value=fmt(scene.sky))
         _el(integrator, "rgb", name="ground", value=fmt(scene.ground))
@@ -253,6 +255,8 @@ def load_scene(path: str | Path, overrides: Mapping[str, object] | None = None) 
             scene.shadows = p["shadows"].get("value", "false").lower() == "true"
         if "light_radius" in p:
             scene.light_radius = _number(p["light_radius"].get("value"), "light radius", 0.0)
+        if "light_falloff" in p:
+            scene.light_falloff = _number(p["light_falloff"].get("value"), "light falloff distance", 0.0)
         for name in ("sky", "ground"):
             if name in p:
                 setattr(scene, name, _vector(p[name].get("value"), 3, f"{name} radiance", 0.0))
