@@ -43,7 +43,8 @@ OBJECT_SHAPES: dict[str, tuple[int, ...]] = {
     "ambient": (), "diffuse": (), "specular": (), "shininess": (),
 }
 GLOBAL_SHAPES: dict[str, tuple[int, ...] | None] = {
-    "light_position": None, "light_intensity": None, "light_radius": (), "light_falloff": (), "sky": (3,), "ground": (3,),
+    "light_position": None, "light_intensity": None, "light_radius": (), "light_falloff": (),
+    "sky": (3,), "ground": (3,),
     "ambient_light": (3,),
     "floor_colour": (3,), "floor_ambient": (), "floor_diffuse": (), "floor_specular": (),
     "floor_shininess": (), "floor_pattern": None,
@@ -193,7 +194,7 @@ class Renderer:
         # the paper's world pays nothing for it; fixed at construction, like the shadow samples
         self.environment = bool(np.any(self.params["sky"] > 0) or np.any(self.params["ground"] > 0))
         self.lobe = scene.lobe  # the specular lobe (render/lobes.py), fixed at construction
-        # the lights' inverse-square falloff (render/phong.py, :func:`falloff`): traced only where the world
+        # the lights' inverse-square falloff (render/falloff.py): traced only where the world
         # has one, so the paper's lights pay nothing for it; fixed at construction, like the lobe
         self.falloff = bool(self.params["light_falloff"] > 0)
 

@@ -315,7 +315,7 @@ def trace(shape: str, p: Mapping[str, jnp.ndarray], origin, directions, floor_ha
                 intersect, pose, point, normal, l, distance, p["light_position"][k][:, None],
                 p["light_radius"], shadow_pattern))
         intensity = p["light_intensity"][k][:, None]
-        if falloff_on:   # inverse-square falloff about the reference distance (render/phong.py)
+        if falloff_on:   # inverse-square falloff about the reference distance (render/falloff.py)
             intensity = intensity * falloff(p["light_falloff"], distance)
         lit_diffuse = lit_diffuse + jnp.where(lit, visible * intensity * cos_light, 0.0)
         if lobe == "ggx":

@@ -372,7 +372,7 @@ class MitsubaRenderer(Renderer):
                                                dr.detach(p.light_radius), valid & (cos_light > 0))
                 diffuse_term = diffuse_term * visible
                 specular_term = specular_term * visible
-            if self.falloff:   # inverse-square falloff about the reference distance (render/phong.py)
+            if self.falloff:   # inverse-square falloff about the reference distance (render/falloff.py)
                 intensity = intensity * falloff(per_ray(mi.Float, p.light_falloff), distance)
             lit_diffuse += intensity * diffuse_term
             lit_specular += intensity * specular_term

@@ -176,7 +176,7 @@ class Scene:
     shadows: bool = False
     light_radius: float = 0.0   # metres; > 0 softens the shadows (render/soft_shadows.py)
     # metres; > 0: each light's intensity falls off as (light_falloff / distance)^2, so an intensity is the
-    # light's at that distance (render/phong.py, "falloff"); 0: no falloff, the paper's point lights
+    # light's at that distance (render/falloff.py); 0: no falloff, the paper's point lights
     light_falloff: float = 0.0
     # radiance of the environment above and below the horizon (render/hemisphere.py); 0: point lights only
     sky: np.ndarray = field(default_factory=lambda: np.zeros(3))
