@@ -12,7 +12,6 @@ mean squared error of the fit (all pixels) for reference.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +19,7 @@ import numpy as np
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.fit.model import FittedModel, shot_params
 from mitsuba_p3.render import make_renderer
+from probe_fields_power import materials_for
 
 
 def main() -> None:
@@ -52,13 +52,10 @@ def main() -> None:
         axes[row, 0].imshow(image)
         axes[row, 0].set_title(name, fontsize=7)
         for k, (model, renderer) in enumerate(zip(models, renderers)):
-            materials = dict(model.materials)
-            key = f"{shot.cls.colour}-{shot.cls.material}"
-            if key not in materials:   # a test class: the fit's material of its kind
-                materials[key] = next(v for k_, v in materials.items() if k_.endswith("-" + shot.cls.material))
-            params = {k_: np.asarray(v, np.float32) for k_, v in shot_params(shot, materials).items()}
+            params = {key: np.asarray(v, np.float32)
+                      for key, v in shot_params(shot, materials_for(shot, model.materials)).items()}
             render = np.asarray(renderer.render(params))
-            mse = json.loads((Path(model.root) / "model.json").read_text())["stages"]["scene"]["final_mean_squared_error"]
+            mse = model.info["stages"]["scene"]["final_mean_squared_error"]
             axes[row, 1 + 2 * k].imshow(np.clip(render, 0, 1))
             axes[row, 1 + 2 * k].set_title(f"{Path(model.root).name} (fit MSE {mse:.2e})", fontsize=7)
             axes[row, 2 + 2 * k].imshow(np.clip(0.5 + image - render, 0, 1))

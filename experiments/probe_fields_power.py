@@ -49,14 +49,21 @@ def load_case(args, parser: argparse.ArgumentParser):
     if not shots:
         parser.error(f"no image {args.image} in {args.dataset}'s {args.split} split")
     shot = shots[0]
-    materials = dict(fitted.materials)
-    key = f"{shot.cls.colour}-{shot.cls.material}"
-    if key not in materials:
-        materials[key] = next(v for k, v in fitted.materials.items() if k.endswith("-" + shot.cls.material))
+    materials = materials_for(shot, fitted.materials)
     posterior = az.from_netcdf(args.posterior).posterior
     draws = posterior["z"].values.reshape(-1, posterior["z"].shape[-1])
     return (dataset, fitted, dataset.image(shot), shot_params(shot, materials), draws,
             posterior["kappa"].values.reshape(-1))
+
+
+def materials_for(shot, materials: dict) -> dict:
+    """The fit's materials with one for ``shot``'s class: its own, or, for a colour the fit never saw (a test
+    class), the fit's first material of its kind (shared with ``look_fitted_worlds.py``)."""
+    materials = dict(materials)
+    key = f"{shot.cls.colour}-{shot.cls.material}"
+    if key not in materials:
+        materials[key] = next(v for k, v in materials.items() if k.endswith("-" + shot.cls.material))
+    return materials
 
 
 def position_of(prior, params: dict) -> np.ndarray:
