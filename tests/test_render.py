@@ -125,6 +125,9 @@ def test_light_falloff_is_inverse_square(scene):
     assert np.array_equal(renderer.render({"light_falloff": np.float32(0.0)}), plain)
     point = make_renderer(one.replace(light_falloff=0.2), height=H, width=W)
     assert point.falloff and not renderer.falloff
+    for made, value in ((renderer, 0.2), (point, 0.0)):   # fixed at construction: a call cannot switch it
+        with pytest.raises(SceneError, match="light_falloff"):
+            made.render({"light_falloff": np.float32(value)})
     image = point.render()
     # the pixel that sees the floor point under the light: where the unfalloffed render is brightest
     row, col = np.unravel_index(np.argmax(plain.sum(axis=2)), plain.shape[:2])

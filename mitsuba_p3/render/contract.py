@@ -206,7 +206,14 @@ class Renderer:
             if unknown:
                 raise SceneError(f"unknown renderer parameter(s) {sorted(unknown)}; known: {sorted(merged)}")
             merged.update(params)
-        return check_params(merged)
+        out = check_params(merged)
+        if bool(out["light_falloff"] > 0) != self.falloff:
+            # the falloff chooses the traced code at construction (as the lobe does): a call may change its
+            # distance, not turn it on or off, which would otherwise be ignored or black out every light
+            raise SceneError(f"light_falloff {float(out['light_falloff'])} in a call to a renderer made "
+                             f"{'with' if self.falloff else 'without'} falloff: make the renderer from a scene "
+                             "with the falloff wanted")
+        return out
 
     def render_empty(self) -> np.ndarray:
         """The world without its object (shrunk to 10 micrometres, far below a pixel): the floor as the
