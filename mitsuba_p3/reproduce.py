@@ -77,12 +77,15 @@ class ReproduceConfig:
     evaluation: EvaluationConfig = field(default_factory=EvaluationConfig)
     resolution: tuple | None = None    # (H, W) of generated benchmarks; None: the benchmark's default
     observation: str = "phong"         # the observation model of the fits made here (fit --observation)
+    light_falloff: float = 0.0         # the lights' falloff distance of the fits made here (fit --light-falloff)
 
     def __post_init__(self):
-        from .fit.scene_opt import OBSERVATIONS
+        from .fit.scene_opt import OBSERVATIONS, SceneOptConfig
 
         if self.observation not in OBSERVATIONS:
             raise ConfigError(f"unknown observation model {self.observation!r}; choose {' or '.join(OBSERVATIONS)}")
+        SceneOptConfig(light_falloff=self.light_falloff)   # refuses a bad distance before anything is generated
+        object.__setattr__(self, "light_falloff", float(self.light_falloff))
         object.__setattr__(self, "benchmarks", tuple(self.benchmarks))
         if self.resolution is not None:
             object.__setattr__(self, "resolution", tuple(int(v) for v in self.resolution))
@@ -95,25 +98,39 @@ class ReproduceConfig:
 
 
 def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] | None = None,
-            resolution: tuple[int, int] | None = None, observation: str = "phong") -> tuple[Path, Path]:
+            resolution: tuple[int, int] | None = None, observation: str = "phong",
+            light_falloff: float = 0.0) -> tuple[Path, Path]:
     """The benchmark folder and the model folder evaluation uses (made when missing; generated at
-    ``resolution``, (H, W), or the benchmark's default; fitted with the ``observation`` model, in
-    ``data/models/V`` for the paper's Phong model and ``data/models/V-OBSERVATION`` otherwise)."""
+    ``resolution``, (H, W), or the benchmark's default; fitted with the ``observation`` model and the lights'
+    ``light_falloff``, in the folder :func:`model_name` names)."""
     from .benchmarks.generate import generate
     from .fit.model import fit_model
     from .fit.scene_opt import SceneOptConfig
+    from .fit.model import FittedModel
 
     folder = data / variant
     generate(variant, folder, resolution=resolution,
              progress=(lambda d, t: progress(f"{variant}: generate", d, t)) if progress else None)
     source = fitted_on(variant)
-    model = data / "models" / (source if observation == "phong" else f"{source}-{observation}")
+    model = data / "models" / model_name(source, observation, light_falloff)
     if not (model / "model.json").exists():
         if source != variant:
             generate(source, data / source, resolution=resolution)
-        fit_model(data / source, model, scene_config=SceneOptConfig(observation=observation),
+        fit_model(data / source, model, scene_config=SceneOptConfig(observation=observation,
+                                                                    light_falloff=light_falloff),
                   progress=(lambda stage, d, t, _: progress(f"{source}: fit {stage}", d, t)) if progress else None)
+    fitted = float(FittedModel(model).globals.get("light_falloff", 0.0))
+    if abs(fitted - light_falloff) > 1e-6:
+        raise ConfigError(f"{model} was fitted with light falloff {fitted:g}, not the {light_falloff:g} asked for; "
+                          f"move it away or ask for {fitted:g}")
     return folder, model
+
+
+def model_name(source: str, observation: str = "phong", light_falloff: float = 0.0) -> str:
+    """The model folder's name under ``data/models``: the benchmark's own for the paper's world (Phong, no
+    falloff), else with the observation model and ``falloffD`` appended (``fsclvr-microfacet-falloff0.5``)."""
+    name = source if observation == "phong" else f"{source}-{observation}"
+    return name if light_falloff == 0 else f"{name}-falloff{light_falloff:g}"
 
 
 def fitted_on(variant: str) -> str:
@@ -161,7 +178,8 @@ def reproduce(data: str | Path, out: str | Path, config: ReproduceConfig | None 
     minutes = {}
     for variant in config.benchmarks:
         start = time.perf_counter()
-        folder, model = prepare(data, variant, progress, config.resolution, config.observation)
+        folder, model = prepare(data, variant, progress, config.resolution, config.observation,
+                                config.light_falloff)
         prepared = (time.perf_counter() - start) / 60
         start = time.perf_counter()
         noise = evaluation.noise if evaluation.noise != "paper" and evaluation.sigma is None else evaluation.sigma

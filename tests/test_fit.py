@@ -75,6 +75,28 @@ def test_fit_light_falloff_is_kept_in_the_fitted_world():
         SceneOptConfig(**TINY_FIT, light_falloff=-1.0)
 
 
+def test_reproduce_names_and_checks_the_falloff_of_its_models(tiny_model, tmp_path, monkeypatch):
+    """reproduce --light-falloff D fits into data/models/V-falloffD (the paper's world keeps data/models/V) and
+    refuses a model folder there that was fitted with another falloff, rather than evaluate in the wrong world."""
+    import mitsuba_p3.benchmarks.generate as generate_module
+    from mitsuba_p3.errors import ConfigError
+    from mitsuba_p3.reproduce import ReproduceConfig, model_name, prepare
+
+    assert model_name("fsclvr") == "fsclvr"
+    assert model_name("fsclvr", light_falloff=0.5) == "fsclvr-falloff0.5"
+    assert model_name("fsclvr", "microfacet", 0.5) == "fsclvr-microfacet-falloff0.5"
+    with pytest.raises(ConfigError, match="light_falloff"):
+        ReproduceConfig(light_falloff=-0.5)
+
+    monkeypatch.setattr(generate_module, "generate", lambda *args, **kwargs: None)
+    (tmp_path / "models").mkdir()
+    (tmp_path / "models" / "fsclvr").symlink_to(tiny_model.root)
+    assert prepare(tmp_path, "fsclvr")[1] == tmp_path / "models" / "fsclvr"
+    (tmp_path / "models" / "fsclvr-falloff0.5").symlink_to(tiny_model.root)   # fitted without falloff
+    with pytest.raises(ConfigError, match="fitted with light falloff 0"):
+        prepare(tmp_path, "fsclvr", light_falloff=0.5)
+
+
 @pytest.mark.slow
 def test_a_microfacet_fit_learns_and_keeps_its_lobe_in_the_model_folder(tiny_dataset, tmp_path):
     """The whole scene stage with the GGX lobe: it learns, and the folder's scene and scene.xml carry the lobe."""

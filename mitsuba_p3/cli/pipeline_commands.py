@@ -294,6 +294,9 @@ def reproduce(
     observation: str = typer.Option("phong", help="Observation model of the fits made here (as fit --observation; "
                                                   "models go to data/models/V-OBSERVATION unless phong); use another "
                                                   "--out than a Phong reproduction's."),
+    light_falloff: float = typer.Option(0.0, help="The lights' falloff distance of the fits made here (as fit "
+                                                  "--light-falloff; models go to data/models/V-falloffD unless 0, "
+                                                  "the paper's world)."),
     tables_only: bool = typer.Option(False, "--tables-only", help="Only write the tables and figures again from "
                                      "the runs and scored baselines already in OUT (nothing generated or sampled)."),
 ) -> None:
@@ -320,7 +323,7 @@ def reproduce(
                                   distance=DistanceConfig(properties=parse_properties(distance),
                                                           spread_shots=spread_shots, direction=kl))
     height, width = parse_resolution(resolution)
-    config = ReproduceConfig(observation=observation,
+    config = ReproduceConfig(observation=observation, light_falloff=light_falloff,
                              benchmarks=tuple(b.strip() for b in benchmarks.split(",") if b.strip()),
                              evaluation=evaluation, resolution=(height, width) if height else None)
     start = time.perf_counter()
