@@ -12,71 +12,19 @@ Mitsuba launch -- or, with ``renderer="jax"``, from the pure-JAX tracer.
 from __future__ import annotations
 
 import functools
-from typing import Callable, NamedTuple
+from typing import Callable
 
 import numpy as np
 
-from .. import small_linalg
 from ..fit.model import FittedModel
 from ..fit.priors import Prior
 from ..render import RENDERERS
 from ..render.contract import OBJECT_SHAPES
 from ..space import DIMENSION, HYPOTHESES, OBJECT_KEYS, SLICES, render_params
-from .likelihood import LikelihoodConfig, fields_form, fields_masks, fields_regions, observe, score, whiten
+from .likelihood import LikelihoodConfig, observe, score
+from .material_moves import MaterialMoves
 from .mcmc import Target
 from .window import OUTSIDE_WINDOW, pixel_of, window_for, window_log_term
-
-# The ridge move's step: log s ~ N(0, RIDGE_STEP^2), a fifth of an e-fold of the colour's brightness.
-RIDGE_STEP = 0.2
-
-
-class MixtureConditional(NamedTuple):
-    """A material conditional that is a mixture of trivariate Gaussians (component log weights (C,), means
-    (C, 3), precisions and their Cholesky factors (C, 3, 3), log determinants (C,)), in natural units: the
-    weights' (k_a, k_d, k_s) given the colour, the pose, the class and the shininess; the colour's given
-    the weights where the noise couples the channels."""
-    log_mix: object
-    mean: object
-    precision: object
-    chol: object
-    log_det_p: object
-
-    @classmethod
-    def of(cls, log_w, mu, var, lam, eta) -> "MixtureConditional":
-        """The conditional of x under a prior mixture of diagonal Gaussians (log weights (C,), means and
-        variances (C, 3)) times a Gaussian likelihood exp(-x'lam x / 2 + eta'x) (lam (3, 3), eta (3,)):
-        each component's posterior, and its weight by the component's evidence."""
-        import jax
-        import jax.numpy as jnp
-
-        precision = jax.vmap(jnp.diag)(1.0 / var) + lam                             # (C, 3, 3)
-        h = mu / var + eta
-        factor = small_linalg.cholesky(precision, jnp)       # written out: no LAPACK call (small_linalg)
-        chol = small_linalg.as_matrix(factor, jnp)
-        mean = small_linalg.solve(factor, h, jnp)
-        log_det_p = small_linalg.log_det(factor, jnp)
-        log_evidence = (-0.5 * jnp.sum(jnp.log(var), axis=1) - 0.5 * log_det_p + 0.5 * jnp.sum(h * mean, axis=1)
-                        - 0.5 * jnp.sum(mu * mu / var, axis=1))
-        return cls(jax.nn.log_softmax(log_w + log_evidence), mean, precision, chol, log_det_p)
-
-    def log_q(self, w):
-        import jax
-        import jax.numpy as jnp
-
-        d = w - self.mean                                                           # (C, 3)
-        quad = jnp.einsum("ci,cij,cj->c", d, self.precision, d)
-        return jax.scipy.special.logsumexp(self.log_mix + 0.5 * self.log_det_p - 1.5 * jnp.log(2 * jnp.pi)
-                                           - 0.5 * quad)
-
-    def draw(self, key):
-        import jax
-        import jax.numpy as jnp
-
-        k_combo, k_noise = jax.random.split(key)
-        combo = jax.random.categorical(k_combo, self.log_mix)
-        noise = jax.random.normal(k_noise, (3,))
-        factor = [[self.chol[combo][i, j] for j in range(3)] for i in range(3)]
-        return self.mean[combo] + small_linalg.backward(factor, noise, jnp)
 
 
 def contract_params(prior: Prior, z) -> dict:
@@ -169,10 +117,11 @@ def jax_render_function(renderer, bases: bool = False, window: tuple[int, int] |
     return lambda params: render(params, jnp.zeros(2, jnp.int32))
 
 
-class PosteriorCore:
+class PosteriorCore(MaterialMoves):
     """Prior, renderer and likelihood of one fitted model at one image size: the whole
     posterior except the observed image, which every method takes as ``observation``
-    (a pytree from :func:`mitsuba_p3.infer.likelihood.observe`).
+    (a pytree from :func:`mitsuba_p3.infer.likelihood.observe`). The material's moves come from
+    :class:`~mitsuba_p3.infer.material_moves.MaterialMoves`.
 
     Because the image is an argument rather than a constant, one core -- and the
     sampler compiled for it -- serves every image of a data set: :meth:`shared`
@@ -301,6 +250,10 @@ class PosteriorCore:
 
         return camera_rays(self.fitted.scene().camera, self.renderer.height, self.renderer.width)
 
+    def params(self, z) -> dict:
+        """The renderer contract's object parameters of position(s) z (:func:`contract_params`)."""
+        return contract_params(self.prior, z)
+
     def render(self, z):
         """Image(s) of unconstrained position(s) z (JAX)."""
         return self._render(contract_params(self.prior, z))
@@ -377,312 +330,6 @@ class PosteriorCore:
         # the log joint changes only through the prior's yaw term (likelihood and scale prior are invariant)
         new_logdensity = state.logdensity + self.prior.log_prob(new) - self.prior.log_prob(z)
         return type(state)(jnp.where(accept, new, z), jnp.where(accept, new_logdensity, state.logdensity))
-
-    def ridge_move(self, key, state, log_prior=None, step: float = RIDGE_STEP):
-        """An MH move along the colour/weight ridge; no render.
-
-        The image sees the colour c only through the products c k_a and c k_d (the
-        specular lobe is white), so the scene (c s, k_a / s, k_d / s) renders exactly
-        like (c, k_a, k_d) for any s > 0, as long as no channel of c is clipped at 1.
-        Along that ridge the posterior is the prior's, and the material update, which
-        draws the colour given the weights and then the weights given the colour, crawls
-        along it in tiny steps once the likelihood is sharp (each conditional is narrow):
-        runs with different seeds then sit at different points of the same ridge. This
-        move proposes log s ~ N(0, ``step``^2) and accepts with the prior ratio times the
-        Jacobian s (c scales 3 coordinates by s, k_a and k_d two by 1/s; the affine maps to
-        z cancel); a proposal or state with a channel of c above 1 is rejected (there the
-        render would change), which keeps detailed balance. ``state.logdensity`` changes by
-        the prior's difference only; ``log_prior`` defaults to :meth:`Prior.log_prob`."""
-        import jax
-        import jax.numpy as jnp
-
-        log_prior = log_prior or self.prior.log_prob
-        k_step, k_accept = jax.random.split(key)
-        z = state.position
-        x = self.prior.constrain(z)
-        log_s = step * jax.random.normal(k_step)
-        s = jnp.exp(log_s)
-        new = z
-        for name, factor in (("colour", s), ("ambient", 1.0 / s), ("diffuse", 1.0 / s)):
-            g = self.prior.gmms[name]
-            value = x[name] if name == "colour" else x[name][..., None]
-            new = new.at[SLICES[name]].set((value * factor - g.mean) / g.std)
-        new_colour = x["colour"] * s
-        inside = (jnp.max(x["colour"]) <= 1.0) & (jnp.max(new_colour) <= 1.0)
-        delta = log_prior(new) - log_prior(z)
-        accept = inside & (jnp.log(jax.random.uniform(k_accept)) < delta + log_s)
-        return type(state)(jnp.where(accept, new, z), jnp.where(accept, state.logdensity + delta, state.logdensity))
-
-    def material_move(self, key, state, observation, tempering=1.0, log_prior=None):
-        """Metropolis-within-Gibbs update of the materials of one chain's state: colour, then (k_a, k_d, k_s).
-
-        One render of the material bases (:meth:`render_bases` of the renderers) makes
-        the image an explicit function of the materials at the current pose, class and
-        shininess: ``clip(c (k_a A + k_d D) + k_s S + F)``. Before clipping it is affine
-        in the colour given the weights, and affine in the weights given the colour.
-        With the Gaussian form of the colour likelihood and the GMM priors, each
-        conditional is then a Gaussian mixture; a draw from it is an independence
-        proposal, accepted by MH with the exact log joint, computed from the bases
-        without another render (clipping, truncation and the neural term included).
-        Returns (new state, both accepted).
-
-        For a tempered target ``log_prior(z) + tempering * log p(I | z)`` (sequential Monte Carlo),
-        pass ``tempering`` and the prior (default: :meth:`Prior.log_prob`); ``state.logdensity`` is
-        then that target's value.
-        """
-        state, accepted, _, _ = self.scored_material_move(key, state, observation, tempering, log_prior)
-        return state, accepted
-
-    def scored_material_move(self, key, state, observation, tempering=1.0, log_prior=None, jump: bool = False):
-        """:meth:`material_move`, also returning log p(I | z) of the new state, computed from the
-        bases it rendered: a tempered sampler needs the likelihood apart from the prior, and this
-        saves it a render per move. With ``jump``, the material kind's jump (:meth:`_kind_jump`, one
-        more render) comes first. Returns (state, colour and weights accepted, log likelihood, jump
-        accepted (False without ``jump``))."""
-        import jax
-        import jax.numpy as jnp
-
-        k_colour, k_weights, k_jump = jax.random.split(key, 3)
-        bases = self._image(state.position, observation, bases=True)
-        gram = self._gram(bases, observation, tempering, state.position)
-        # the material moves leave the pose, so the window's term (mitsuba_p3.infer.window) is the state's throughout
-        term = self.window_log_term(state.position, observation)
-        target = (tempering, log_prior or self.prior.log_prob, term)
-        jumped = jnp.asarray(False)
-        if jump:
-            state, jumped, bases, gram = self._kind_jump(k_jump, state, bases, gram, observation, target)
-        state, colour_ok = self._colour_move(k_colour, state, bases, gram, observation, target)
-        state, weights_ok = self._weights_move(k_weights, state, bases, gram, observation, target)
-        loglik = self._score(state.position, self._image_from_bases(bases, state.position), observation) + term
-        return state, colour_ok & weights_ok, loglik, jumped
-
-    def _gram(self, bases, observation, tempering, z):
-        """The tempered precision-weighted inner products of the bases A, D, S and the residual
-        r = I_obs - F, each taken in one colour channel: both material conditionals need only these.
-        (3, 4, 4) per channel where the noise keeps the channels apart; (3, 3, 4, 4) [c, c', i, j]
-        where it couples them (shading fields shared across channels, :mod:`mitsuba_p3.fit.fields`)."""
-        import jax.numpy as jnp
-
-        vectors = jnp.concatenate([bases[..., :3, :], (observation["image"] - bases[..., 3, :])[..., None, :]],
-                                  axis=-2)                                          # (h, w, 4, 3)
-        precision = tempering * self.config.power / self.config.sigma ** 2
-        if self.config.spectral:
-            # the spectral form's quadratic is that of whitened images (linear), at precision power
-            vectors = jnp.moveaxis(whiten(jnp.moveaxis(vectors, -2, 0), observation, self.config), 0, -2)
-            precision = tempering * self.config.power
-        flat = vectors.reshape(-1, 12)                                              # (pixels, 4 x 3)
-        full = (flat.T @ flat).reshape(4, 3, 4, 3)                                  # one matmul: XLA's fast path
-        # the Gaussian part of the likelihood (outliers are left to the MH test)
-        gram = jnp.einsum("icjc->cij", full)
-        if self.config.fields is not None:
-            correction = self._fields_correction(vectors, bases, observation, z)    # (3, 3, 4, 4)
-            if self.config.fields_channels == "independent":
-                gram = gram - jnp.einsum("ccij->cij", correction)
-            else:
-                gram = jnp.einsum("cd,cij->cdij", jnp.eye(3, dtype=gram.dtype), gram) - correction
-        return gram * precision
-
-    def _fields_correction(self, vectors, bases, observation, z):
-        """(3, 3, 4, 4) [c, c', i, j] what the shading fields take off the inner products of vector i in
-        channel c and vector j in channel c': under covariance sigma^2 I + B T B' the precision is
-        (I - B (G + sigma^2 T^-1)^-1 B') / sigma^2, so x'Qy is the white x'y / sigma^2 less
-        (B'x)' (G + sigma^2 T^-1)^-1 (B'y) / sigma^2 (:mod:`mitsuba_p3.fit.fields`). Zero for c != c' when
-        every field is a single channel's. The regions are the pose's: its object's pixels, the floor
-        its shadow changes, and the rest of the floor where the form has that region (the materials move
-        none of them)."""
-        import jax.numpy as jnp
-
-        from ..fit.fields import column_statistics, field_statistics
-
-        height, width = vectors.shape[:2]
-        masks = fields_masks(bases[..., 3, :], self.objects(z, observation), observation["empty"],
-                             fields_regions(self.config))
-        variances, basis, loading = fields_form(self.config, height, width)
-        statistics = field_statistics(jnp.moveaxis(vectors, -2, 0), masks, basis, xp=jnp)   # b: (4, R, k, 3)
-        _, gram, _, _ = column_statistics(statistics, loading, xp=jnp)                       # (R, K, K)
-        loading = jnp.asarray(loading, gram.dtype)
-        # B'x for vector i taken in channel c alone: (4, 3, R, K)
-        columns = jnp.einsum("jmc,irmc->icrj", loading, statistics[2])
-        size = gram.shape[-1]
-        inner = gram + (self.config.sigma ** 2 / jnp.asarray(variances, gram.dtype))[..., None] * jnp.eye(size)
-        solved = small_linalg.solve(small_linalg.cholesky(inner, jnp), columns, jnp)        # (4, 3, R, K)
-        return jnp.einsum("icrk,jdrk->cdij", columns, solved)
-
-    def _kind_jump(self, key, state, bases, gram, observation, target):
-        """The material kind's jump: a new shininess drawn from its prior (a mixture of the fitted
-        materials' components: broad highlights and tight ones), the weights (k_a, k_d, k_s) drawn from
-        their conditional at the new shininess's bases (one render) given the colour, accepted with the
-        Hastings ratio of that independence proposal, whose reverse density takes the weights'
-        conditional at the current bases. The walk moves the shininess only locally and the weights
-        follow it only through the Gibbs update, so a run whose particles settled on one kind of
-        highlight could keep them there; this move proposes the other kind whole (on fsclvr's misread
-        metals it found no missed mode: docs/notebook.md). Returns (state, accepted, bases and gram of
-        the state kept)."""
-        import jax
-        import jax.numpy as jnp
-
-        k_component, k_noise, k_weights, k_accept = jax.random.split(key, 4)
-        g = self.prior.gmms["shininess"]
-        s = SLICES["shininess"].start
-        loc, std = float(g.mean[0]), float(g.std[0])
-        means, sds = jnp.asarray(g.means[:, 0]), jnp.sqrt(jnp.asarray(g.variances[:, 0]))
-        component = jax.random.categorical(k_component, jnp.log(jnp.asarray(g.weights)))
-        alpha = means[component] + sds[component] * jax.random.normal(k_noise)
-
-        def log_q_alpha(z_alpha):    # the prior's density in the natural unit (its Jacobian std cancels)
-            return g.log_prob((loc + std * z_alpha)[None])
-
-        position = state.position
-        moved = position.at[s].set((alpha - loc) / std)
-        new_bases = self._image(moved, observation, bases=True)
-        new_gram = self._gram(new_bases, observation, target[0], moved)
-        colour = contract_params(self.prior, position)["colour"]
-        dims, w_loc, w_std = self._weight_coordinates()
-        old, new = self._weights_conditional(gram, colour), self._weights_conditional(new_gram, colour)
-        weights = new.draw(k_weights)
-        new_position = moved.at[dims].set((weights - w_loc) / w_std)
-        log_q_ratio = (log_q_alpha(position[s]) + old.log_q(w_loc + w_std * position[dims])
-                       - log_q_alpha(new_position[s]) - new.log_q(weights))
-        state, accepted = self._independence_mh(k_accept, state, new_position, new_bases, log_q_ratio,
-                                                observation, target)
-        return (state, accepted, jnp.where(accepted, new_bases, bases), jnp.where(accepted, new_gram, gram))
-
-    def _image_from_bases(self, bases, z):
-        """The image at position z whose pose, class and shininess gave ``bases`` (H, W, 4, 3)."""
-        import jax.numpy as jnp
-
-        p = contract_params(self.prior, z)
-        A, D, S, F = (bases[..., i, :] for i in range(4))
-        return jnp.clip(p["colour"] * (p["ambient"] * A + p["diffuse"] * D) + p["specular"] * S + F, 0.0, 1.0)
-
-    def _colour_move(self, key, state, bases, gram, observation, target):
-        """The colour's conditional given the weights: a 3-D Gaussian mixture (one per GMM component)."""
-        import jax
-        import jax.numpy as jnp
-
-        position = state.position
-        gmm = self.prior.gmms["colour"]
-        cols = slice(SLICES["colour"].start, SLICES["colour"].stop)
-        p = contract_params(self.prior, position)
-        # per channel, I = c * slope + offset with slope = k_a A + k_d D and offset = k_s S + F
-        slope = jnp.stack([p["ambient"], p["diffuse"], 0.0 * p["specular"]])
-        offset = jnp.stack([0.0, 0.0, p["specular"]])
-        if gram.ndim == 4:
-            return self._coupled_colour_move(key, state, bases, gram, observation, target, slope, offset)
-        precision = jnp.einsum("i,cij,j->c", slope, gram[:, :3, :3], slope)       # sum slope^2 / sigma^2
-        linear = slope @ gram[:, :3, 3].T - jnp.einsum("i,cij,j->c", slope, gram[:, :3, :3], offset)
-        means, variances = jnp.asarray(gmm.means), jnp.asarray(gmm.variances)       # (K, 3)
-        post_precision = 1.0 / variances + precision
-        post_mean = (means / variances + linear) / post_precision
-        log_evidence = jnp.sum(-0.5 * jnp.log1p(variances * precision)
-                               + (variances * linear ** 2 + 2 * means * linear - precision * means ** 2)
-                               / (2 * (1 + variances * precision)), axis=1)
-        log_weights = jax.nn.log_softmax(jnp.log(jnp.asarray(gmm.weights)) + log_evidence)
-
-        def log_q(c):
-            per = -0.5 * (jnp.sum(post_precision * (c - post_mean) ** 2, axis=1)
-                          - jnp.sum(jnp.log(post_precision / (2 * jnp.pi)), axis=1))
-            return jax.scipy.special.logsumexp(log_weights + per)
-
-        k_component, k_noise, k_accept = jax.random.split(key, 3)
-        component = jax.random.categorical(k_component, log_weights)
-        proposal = post_mean[component] + jax.random.normal(k_noise, (3,)) / jnp.sqrt(post_precision[component])
-        current = jnp.asarray(gmm.mean) + jnp.asarray(gmm.std) * position[cols]
-        new_position = position.at[cols].set((proposal - gmm.mean) / gmm.std)
-        return self._independence_mh(k_accept, state, new_position, bases, log_q(current) - log_q(proposal),
-                                     observation, target)
-
-    def _coupled_colour_move(self, key, state, bases, gram, observation, target, slope, offset):
-        """:meth:`_colour_move` where the noise couples the channels (``gram`` (3, 3, 4, 4)): each GMM
-        component's conditional is then a full trivariate Gaussian (:meth:`_coupled_colour_conditional`)."""
-        import jax
-        import jax.numpy as jnp
-
-        position = state.position
-        gmm = self.prior.gmms["colour"]
-        cols = slice(SLICES["colour"].start, SLICES["colour"].stop)
-        conditional = self._coupled_colour_conditional(gram, slope, offset)
-        k_draw, k_accept = jax.random.split(key)
-        proposal = conditional.draw(k_draw)
-        current = jnp.asarray(gmm.mean) + jnp.asarray(gmm.std) * position[cols]
-        new_position = position.at[cols].set((proposal - gmm.mean) / gmm.std)
-        return self._independence_mh(k_accept, state, new_position, bases,
-                                     conditional.log_q(current) - conditional.log_q(proposal), observation, target)
-
-    def _coupled_colour_conditional(self, gram, slope, offset):
-        """The colour's conditional given the weights under coupled channels (``gram`` (3, 3, 4, 4)), the
-        render I = c * slope + offset per channel: a :class:`MixtureConditional`, one full trivariate
-        Gaussian per GMM component. Exact where the colour stays in [0, 1] (the renderer clips it; the MH
-        test corrects the rest)."""
-        import jax.numpy as jnp
-
-        gmm = self.prior.gmms["colour"]
-        quadratic = jnp.einsum("i,cdij,j->cd", slope, gram[:, :, :3, :3], slope)                # (3, 3)
-        linear = (jnp.einsum("i,cdi->c", slope, gram[:, :, :3, 3])
-                  - jnp.einsum("i,cdij,j->c", slope, gram[:, :, :3, :3], offset))
-        return MixtureConditional.of(jnp.log(jnp.asarray(gmm.weights)), jnp.asarray(gmm.means),
-                                     jnp.asarray(gmm.variances), quadratic + 1e-9 * jnp.eye(3), linear)
-
-    def _weight_coordinates(self):
-        """The weights (k_a, k_d, k_s): their coordinates in z and the affine map's loc and std (3,)."""
-        import jax.numpy as jnp
-
-        gmms = [self.prior.gmms[n] for n in ("ambient", "diffuse", "specular")]
-        return (jnp.array([SLICES[n].start for n in ("ambient", "diffuse", "specular")]),
-                jnp.array([g.mean[0] for g in gmms]), jnp.array([g.std[0] for g in gmms]))
-
-    def _weights_conditional(self, gram, colour) -> "MixtureConditional":
-        """The weights' conditional given the colour and the bases whose ``gram`` is given: a mixture of
-        8 trivariate Gaussians (their priors are independent 2-component GMMs)."""
-        import itertools
-
-        import jax.numpy as jnp
-
-        gmms = [self.prior.gmms[n] for n in ("ambient", "diffuse", "specular")]
-        # every combination of one component per weight: weights (C,), means and variances (C, 3)
-        combos = list(itertools.product(*[range(len(g.weights)) for g in gmms]))
-        log_w = jnp.array([sum(np.log(g.weights[i]) for g, i in zip(gmms, c)) for c in combos])
-        mu = jnp.array([[g.means[i, 0] for g, i in zip(gmms, c)] for c in combos])
-        var = jnp.array([[g.variances[i, 0] for g, i in zip(gmms, c)] for c in combos])
-        # per channel the image is w . (k_a A, k_d D, k_s S) + F with w = (c, c, 1)
-        w = jnp.stack([colour, colour, jnp.ones(3)], axis=-1)                      # (3 channels, 3)
-        if gram.ndim == 4:          # channels coupled by the noise: [c, c', i, j]
-            lam = jnp.einsum("ci,cdij,dj->ij", w, gram[:, :, :3, :3], w) + 1e-9 * jnp.eye(3)
-            eta = jnp.einsum("ci,cdi->i", w, gram[:, :, :3, 3])
-        else:
-            lam = jnp.einsum("ci,cij,cj->ij", w, gram[:, :3, :3], w) + 1e-9 * jnp.eye(3)
-            eta = jnp.einsum("ci,ci->i", w, gram[:, :3, 3])
-        return MixtureConditional.of(log_w, mu, var, lam, eta)
-
-    def _weights_move(self, key, state, bases, gram, observation, target):
-        """The weights' conditional given the colour (:meth:`_weights_conditional`): an independence
-        proposal drawn from it, accepted with the exact log joint."""
-        import jax
-
-        k_draw, k_accept = jax.random.split(key)
-        position = state.position
-        dims, loc, std = self._weight_coordinates()
-        conditional = self._weights_conditional(gram, contract_params(self.prior, position)["colour"])
-        proposal = conditional.draw(k_draw)
-        current = loc + std * position[dims]
-        new_position = position.at[dims].set((proposal - loc) / std)
-        return self._independence_mh(k_accept, state, new_position, bases,
-                                     conditional.log_q(current) - conditional.log_q(proposal), observation, target)
-
-    def _independence_mh(self, key, state, new_position, bases, log_q_ratio, observation, target):
-        """Accept or reject an independence proposal with the exact (tempered) log joint, the image
-        computed from the bases; ``target`` is (tempering, log prior, the window's term of the pose, which
-        a material move keeps)."""
-        import jax
-        import jax.numpy as jnp
-
-        tempering, log_prior, term = target
-        image = self._image_from_bases(bases, new_position)
-        new_logdensity = (log_prior(new_position)
-                          + tempering * (self._score(new_position, image, observation) + term))
-        accept = jnp.log(jax.random.uniform(key)) < new_logdensity - state.logdensity + log_q_ratio
-        return (type(state)(jnp.where(accept, new_position, state.position),
-                            jnp.where(accept, new_logdensity, state.logdensity)), accept)
 
 
 class PosteriorModel:
