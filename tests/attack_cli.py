@@ -228,6 +228,10 @@ def attacks() -> list[Attack]:
     add(Attack("infer: --sigma inf", infer("s-inf", "--sigma", "inf")))
     add(Attack("infer: --sigma -1", infer("s-neg", "--sigma", "-1")))
     add(Attack("evaluate: --tune-rounds -1", lambda w: evaluate("r-tune")(w) + ["--tune-rounds", "-1"]))
+    add(Attack("fit: --light-falloff -1", lambda w: ["fit", str(w / "data"), "--out", str(w / "m-falloff"),
+                                                     "--light-falloff", "-1"]))
+    add(Attack("reproduce: --light-falloff -1", lambda w: ["reproduce", "--data", str(w), "--out", str(w / "r-falloff"),
+                                                           "--light-falloff", "-1"]))
     add(Attack("evaluate: --likelihoods p3,p3", lambda w: evaluate("r-twice")(w) + ["--likelihoods", "p3,p3"]))
     add(Attack("render: fractional kappa", lambda w: ["render", scene, "-o", str(w / "k.png"), "--set",
                                                       "kappa=0.5"]))

@@ -32,7 +32,7 @@ FAST_NAMES = ("benchmark check: labels.json not JSON", "benchmark check: an empt
               "benchmark check: a mesh shape without its mesh", "benchmark check: rgb null",
               "benchmark check: a negative shot", "benchmark check: object_to_world 10x the scale",
               "benchmark check: a 32-bit integer TIFF", "render: -o an existing directory",
-              "render: --resolution 20000x20000")
+              "render: --resolution 20000x20000", "fit: --light-falloff -1", "reproduce: --light-falloff -1")
 FAST = [a for a in ATTACKS if a.name in FAST_NAMES]
 SLOW = [a for a in ATTACKS if a.name not in FAST_NAMES]
 
