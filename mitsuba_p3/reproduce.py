@@ -104,9 +104,8 @@ def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] 
     ``resolution``, (H, W), or the benchmark's default; fitted with the ``observation`` model and the lights'
     ``light_falloff``, in the folder :func:`model_name` names)."""
     from .benchmarks.generate import generate
-    from .fit.model import fit_model
+    from .fit.model import FittedModel, fit_model
     from .fit.scene_opt import SceneOptConfig
-    from .fit.model import FittedModel
 
     folder = data / variant
     generate(variant, folder, resolution=resolution,
