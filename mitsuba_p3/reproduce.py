@@ -118,6 +118,8 @@ def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] 
         fit_model(data / source, model, scene_config=SceneOptConfig(observation=observation,
                                                                     light_falloff=light_falloff),
                   progress=(lambda stage, d, t, _: progress(f"{source}: fit {stage}", d, t)) if progress else None)
+        return folder, model
+    # a folder already there (a user's own fit, or an earlier call's) must be the world asked for
     fitted = float(FittedModel(model).globals.get("light_falloff", 0.0))
     if abs(fitted - light_falloff) > 1e-6:
         raise ConfigError(f"{model} was fitted with light falloff {fitted:g}, not the {light_falloff:g} asked for; "
