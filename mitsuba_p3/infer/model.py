@@ -220,7 +220,7 @@ class PosteriorCore(MaterialMoves):
         if "window" in observation:
             top, left = observation["window"][0], observation["window"][1]
             rays = jax.lax.dynamic_slice(rays, (top, left, 0), (height, width, 3))
-        params = contract_params(self.prior, z)
+        params = self.params(z)
         covered = silhouette(params, jnp.asarray(origin), rays.reshape(-1, 3), self.renderer.floor_half_size)
         return covered.reshape(height, width)
 
@@ -232,7 +232,7 @@ class PosteriorCore(MaterialMoves):
 
     def _image(self, z, observation, bases: bool = False):
         """The render (or material bases) of z that ``observation`` scores: its window, or the whole image."""
-        params = contract_params(self.prior, z)
+        params = self.params(z)
         if "window" not in observation:
             return (self._bases if bases else self._render)(params)
         size = tuple(np.shape(observation["image"])[:2])
@@ -256,7 +256,7 @@ class PosteriorCore(MaterialMoves):
 
     def render(self, z):
         """Image(s) of unconstrained position(s) z (JAX)."""
-        return self._render(contract_params(self.prior, z))
+        return self._render(self.params(z))
 
     def log_likelihood(self, z, observation):
         """log p(I | z) of one position z (15,) (JAX; vmap for many): the image's score and the window's
