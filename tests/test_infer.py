@@ -1231,16 +1231,16 @@ def test_sbc_ranks_are_uniform_for_an_exact_posterior_and_not_for_a_narrow_one()
     assert not any(summary["ecdf_inside_95_band"].values()) and summary["class"]["ece"] > 0.3
 
 
-def test_an_sbc_cache_made_before_the_wide_start_became_the_default_is_not_resumed_under_it():
+def test_an_sbc_cache_made_before_a_default_changed_is_not_resumed_under_it():
     """An SBC cache's tag names the settings that differ from the first caches' defaults: one made
-    without the wide start (tag "{}") does not match today's default, which names its wide start."""
+    without the wide start or the second round (tag "{}") does not match today's default, which names both."""
     from mitsuba_p3.evaluate.sbc import settings_tag
     from mitsuba_p3.infer.smc import SMCConfig
 
     assert settings_tag(SMCConfig(wide=1, wide_steps=0, coarse=1, symmetry="free", chart=False, inside_window=False,
-                                  seed=5)) == "{}"
+                                  rounds=1, seed=5)) == "{}"
     assert json.loads(settings_tag(SMCConfig())) == {"wide": 4, "wide_steps": 6, "coarse": 2, "symmetry": "rendered",
-                                                  "chart": True, "inside_window": True}
+                                                  "chart": True, "inside_window": True, "rounds": 2}
     assert json.loads(settings_tag(SMCConfig(islands=3)))["islands"] == 3
 
 
