@@ -25,15 +25,17 @@ run resumes), then prints JSON, the settings side by side:
   posterior is made of); ``modal_shape_same_across_seeds`` the share of images whose modal shape
   every seed agrees on.
 
-Settings: ``smc`` is the default of ``infer`` (tempered SMC over the shape classes,
-the fitted Gaussian noise model with hard shadows); ``smc-robust`` the same with the fitted
+Settings: ``smc-fields`` is the default of ``infer`` (tempered SMC over the shape classes under the
+shading fields' form, ``--noise fields``); ``smc-fields-one-round`` the same with one round of runs (the
+default sampler before 2026-11-28, ``SMCConfig.rounds``); ``smc`` the default sampler under the fitted
+Gaussian noise model with hard shadows (the default likelihood before 2026-11-27); ``smc-robust`` the same with the fitted
 inlier/outlier mixture; ``smc-persistent`` and ``smc-wastefree`` the default with persistent
 sampling or waste-free SMC (8 sweeps kept from 32 of 256 particles); ``smc-narrow`` the default without its
 coarse wide start, rendered turns, chart walk or window term (the default before 2026-11-26); ``smc-window-alone``
 the default scoring a scene whose object left the window by the window alone (the default until the eighth session,
 ``SMCConfig.inside_window``); ``smc-unfolded`` the default
 with the walk in z, not in a symmetry chart (the default before the chart walk); ``smc-jump`` the default with
-the material kind's jump; ``smc-fields`` the default sampler under the shading fields' form (``--noise fields``);
+the material kind's jump;
 ``mh-paper`` the MH evaluation preset with the paper's likelihood
 (sigma 1, no shadows), the project's old default; ``mh-fitted`` that sampler with the fitted
 noise. ``NAME:S`` runs a setting with S seeds instead of ``--seeds``. Needs a benchmark folder
@@ -42,7 +44,7 @@ and a model fitted to it:
     mitsuba-p3 benchmark generate fsclvr --out data/fsclvr
     mitsuba-p3 fit data/fsclvr --out data/models/fsclvr
     python scripts/bench_infer.py [--dataset data/fsclvr] [--model data/models/fsclvr] [--out out/bench-infer]
-        [--configs smc,mh-paper:1] [--seeds 4] [--images 120] [--jobs 2]
+        [--configs smc-fields,smc-fields-one-round] [--seeds 4] [--images 120] [--jobs 2]
 """
 from __future__ import annotations
 
@@ -75,7 +77,8 @@ CONFIGS = {"mh-paper": {"noise": "paper"}, "mh-fitted": {"noise": "fitted"},
            "smc-window-alone": {"noise": "fitted", "sampler": SMCConfig(inside_window=False)},
            "smc-unfolded": {"noise": "fitted", "sampler": SMCConfig(chart=False)},
            "smc-jump": {"noise": "fitted", "sampler": SMCConfig(jump=True)},
-           "smc-fields": {"noise": "fields", "sampler": SMCConfig()}}
+           "smc-fields": {"noise": "fields", "sampler": SMCConfig()},
+           "smc-fields-one-round": {"noise": "fields", "sampler": SMCConfig(rounds=1)}}
 CHECKED = ("shift", "scale", "colour")
 
 
@@ -130,7 +133,7 @@ def main() -> None:
     parser.add_argument("--dataset", default="data/fsclvr")
     parser.add_argument("--model", default="data/models/fsclvr")
     parser.add_argument("--out", type=Path, default=Path("out/bench-infer"))
-    parser.add_argument("--configs", default="smc,mh-paper")
+    parser.add_argument("--configs", default="smc-fields,smc-fields-one-round")
     parser.add_argument("--seeds", type=int, default=4)
     parser.add_argument("--images", type=int, default=None, help="evenly spaced test images (default: all)")
     parser.add_argument("--jobs", type=int, default=len(os.sched_getaffinity(0)))
