@@ -13,7 +13,7 @@ demo: setup
 	mitsuba-p3 fit out/fsclvr-small --out out/model-small --epochs 3
 	$(PYTHON) scripts/plot_fit.py out/model-small --samples 12
 	mitsuba-p3 infer $$(ls out/fsclvr-small/test/*/0.png | head -1) --model out/model-small -o out/infer-small
-	@echo "demo: evaluating the 15 test posteriors without the concept spread (--spread-shots 0, the paper's programs), about 15 min under the shading fields"
+	@echo "demo: evaluating the 15 test posteriors without the concept spread (--spread-shots 0, the paper's programs), about 22 min under the shading fields and two SMC rounds"
 	mitsuba-p3 evaluate out/fsclvr-small --model out/model-small --out out/eval-small --likelihoods p3 --episodes 50 --spread-shots 0
 	@echo "demo: look at out/fsclvr.png, out/fsclvr-small.png, out/model-small/figures/, out/infer-small/ and out/eval-small/"
 
