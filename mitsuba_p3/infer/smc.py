@@ -41,8 +41,9 @@ answer is still open: after each round, unless the leader is decided against the
 disagreement (:func:`~mitsuba_p3.infer.evidence.decision`), another round runs ``islands`` more
 SMCs of the hypotheses still in contention. The default is up to two rounds: on the train images
 of fsclvr, room, dark, studio and the demo's world no shape was lost and the mean log p(true shape)
-rose on each; a decided image runs one round only, so the cost is paid where the islands disagree
-(``docs/notebook.md``, "Up to two rounds on every train set").
+rose on four and held on studio's; a decided image runs one round only, so the cost is paid where the
+islands disagree (``docs/notebook.md``, "Up to two rounds on every train set", also for the demo's
+test split, where it read fewer shapes).
 The draws come from each run in proportion to its share of its hypothesis's pooled estimate.
 
 **Material kind.** By default the matte/shiny decision is left inside each shape's run (the
@@ -84,7 +85,7 @@ from .window import OUTSIDE_WINDOW
 
 
 # Settings whose default changed after they were added, at the value they had before: a record (an
-# evaluation's run.json, an SBC cache's tag) that does not name them was made without a wide start
+# evaluation's run.json, an SBC cache's tag) that does not name them was made with these values
 DEFAULTS_BEFORE = {"wide": 1, "wide_steps": 0, "coarse": 1, "symmetry": "free", "chart": False, "inside_window": False,
                    "rounds": 1}
 
