@@ -323,3 +323,30 @@ def test_tracer_benchmark_carries_the_scene_by_a_rotation_and_refuses_a_folder_w
     done = subprocess.run([sys.executable, str(scripts / "bench_tracers.py"), "--authors", str(tmp_path)],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode != 0 and "holds no tamayo" in done.stderr
+
+
+def test_the_posterior_time_probe_counts_renders_and_puts_the_renderer_back(monkeypatch):
+    """experiments/probe_posterior_time.py's clock: every render call and scene counted, colour and bases apart,
+    and the renderer's own methods restored when it is done."""
+    import numpy as np
+
+    from mitsuba_p3.render import mitsuba as mitsuba_renderer
+
+    def render(renderer, params=None):
+        return np.zeros((len(params["theta"]), 2, 2, 3))
+
+    def render_bases(renderer, params=None):
+        return np.zeros((len(params["theta"]), 2, 2, 4, 3))
+
+    monkeypatch.setattr(mitsuba_renderer.MitsubaRenderer, "render", render)
+    monkeypatch.setattr(mitsuba_renderer.MitsubaRenderer, "render_bases", render_bases)
+    probe = load_script("probe_posterior_time")
+    with probe.RenderClock() as clock:
+        cls = mitsuba_renderer.MitsubaRenderer
+        cls.render(None, {"theta": np.zeros(5)})
+        cls.render(None, {"theta": np.zeros(3)})
+        cls.render_bases(None, {"theta": np.zeros(4)})
+        assert (clock.calls, clock.scenes) == (3, 12)
+        assert clock.seconds["render"] >= 0.0 and clock.seconds["bases"] >= 0.0
+    assert mitsuba_renderer.MitsubaRenderer.render is render
+    assert mitsuba_renderer.MitsubaRenderer.render_bases is render_bases
