@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import replace
 from pathlib import Path
 
 from mitsuba_p3.fit.model import FittedModel
@@ -68,7 +67,7 @@ def main() -> None:
     args = parser.parse_args()
     fitted = FittedModel(args.model)
     likelihood = default_likelihood(fitted, "p3", noise=DEFAULT_NOISE)
-    config = replace(SMCConfig(), rounds=args.rounds)
+    config = SMCConfig(rounds=args.rounds)
     with RenderClock() as clock:
         for number, path in enumerate(args.images):
             clock.reset()
