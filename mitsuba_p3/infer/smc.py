@@ -42,8 +42,8 @@ disagreement (:func:`~mitsuba_p3.infer.evidence.decision`), another round runs `
 SMCs of the hypotheses still in contention. The default is up to two rounds: on the train images
 of fsclvr, room, dark, studio and the demo's world no shape was lost and the mean log p(true shape)
 rose on four and held on studio's; a decided image runs one round only, so the cost is paid where the
-islands disagree (``docs/notebook.md``, "Up to two rounds on every train set", also for the demo's
-test split, where it read fewer shapes).
+islands disagree (``docs/notebook.md``, "Up to two rounds on every train set"; on test splits it read
+fewer shapes on the demo's and the same on fsclvr's, at 1.6 times the seconds there).
 The draws come from each run in proportion to its share of its hypothesis's pooled estimate.
 
 **Material kind.** By default the matte/shiny decision is left inside each shape's run (the
