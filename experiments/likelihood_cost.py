@@ -43,13 +43,13 @@ def parts(core: PosteriorCore, observation: dict, batch: int) -> dict:
     z = jnp.asarray(core.prior.sample(np.random.default_rng(0), batch), jnp.float32)
     render = jax.jit(jax.vmap(lambda p: core._image(p, observation)))
     total = jax.jit(jax.vmap(lambda p: core.log_likelihood(p, observation)))
-    images = render(z)
+    images, covered = render(z)
     out = {"render": seconds(render, z)}
     if core.config.fields is not None:
         objects = jax.jit(jax.vmap(lambda p: core.objects(p, observation)))
-        out["object_pixels"] = seconds(objects, z)
+        out["object_pixels"] = seconds(objects, z)   # the JAX tracer's (Mitsuba's come with its render)
         density = jax.jit(lambda r, o: score(observation, r, core.config, None, o))
-        out["density"] = seconds(density, images, objects(z))
+        out["density"] = seconds(density, images, covered)
     else:
         out["density"] = seconds(jax.jit(lambda r: score(observation, r, core.config, None)), images)
     out["evaluation"] = seconds(total, z)

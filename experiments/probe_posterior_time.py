@@ -13,11 +13,20 @@ likelihood (the shading fields' linear algebra, the moves' arithmetic) and the h
         data/fsclvr-lo/test/large-brown-rubber-sphere/0.png data/fsclvr-lo/test/large-brown-rubber-sphere/1.png
 
 ``--rounds 1`` samples with one round of runs (``SMCConfig.rounds``); run it with nothing else on
-the cores, or say what shared them.
+the cores, or say what shared them. ``--profile`` also records a ``jax.profiler`` trace of the images
+after the first and prints the XLA kernels and callbacks that took the most time in it, each by its
+own time (less what ran nested inside it): how the JAX side's seconds were found (docs/notebook.md,
+"The object's pixels from the render itself"). Match a kernel's name to its source with
+``XLA_FLAGS=--xla_dump_to=DIR``'s ``*after_optimizations.txt``.
 """
 from __future__ import annotations
 
 import argparse
+import collections
+import gzip
+import json
+import os
+import tempfile
 import time
 from pathlib import Path
 
@@ -49,9 +58,9 @@ class RenderClock:
         self.seconds, self.calls, self.scenes = {"render": 0.0, "bases": 0.0}, 0, 0
 
     def _timed(self, name, method):
-        def timed(renderer, params=None):
+        def timed(renderer, params=None, **options):
             begin = time.perf_counter()
-            out = method(renderer, params)
+            out = method(renderer, params, **options)
             self.seconds[name] += time.perf_counter() - begin
             self.calls += 1
             self.scenes += len(next(iter(params.values()))) if params else 1
@@ -59,12 +68,46 @@ class RenderClock:
         return timed
 
 
+def own_times(trace: Path, top: int = 15) -> list[tuple[str, float, int]]:
+    """The ``top`` event names of a perfetto trace (``jax.profiler.trace(..., create_perfetto_trace=True)``)
+    by their own seconds, each event's duration less that of the events nested in it on its thread, with
+    their counts."""
+    events = json.load(gzip.open(trace))
+    events = events["traceEvents"] if isinstance(events, dict) else events
+    threads = collections.defaultdict(list)
+    for event in events:
+        if event.get("ph") == "X":
+            threads[event.get("pid"), event.get("tid")].append(event)
+    own, count = collections.Counter(), collections.Counter()
+    for spans in threads.values():
+        spans.sort(key=lambda e: (e["ts"], -e.get("dur", 0)))
+        stack = []                                      # [event, its own time so far]
+        for event in spans:
+            while stack and stack[-1][0]["ts"] + stack[-1][0].get("dur", 0) <= event["ts"]:
+                done, left = stack.pop()
+                own[done["name"]] += left
+            if stack:
+                stack[-1][1] -= event.get("dur", 0)
+            stack.append([event, event.get("dur", 0)])
+            count[event["name"]] += 1
+        for done, left in stack:
+            own[done["name"]] += left
+    return [(name, seconds / 1e6, count[name]) for name, seconds in own.most_common(top)]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("model", type=Path, help="a fitted-model folder (mitsuba-p3 fit)")
     parser.add_argument("images", type=Path, nargs="+", help="images at the model's resolution")
     parser.add_argument("--rounds", type=int, default=SMCConfig.rounds, help="SMC rounds of runs")
+    parser.add_argument("--profile", action="store_true",
+                        help="trace the images after the first; print the kernels that took the most time")
     args = parser.parse_args()
+    if args.profile:   # XLA's per-kernel trace events, read when the backend starts (below, on first use)
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_enable_xprof_traceme=true").strip()
+    import jax
+
+    traces = Path(tempfile.mkdtemp(prefix="probe-trace-"))
     fitted = FittedModel(args.model)
     likelihood = default_likelihood(fitted, "p3", noise=DEFAULT_NOISE)
     config = SMCConfig(rounds=args.rounds)
@@ -72,13 +115,20 @@ def main() -> None:
         for number, path in enumerate(args.images):
             clock.reset()
             begin = time.perf_counter()
-            infer_image(fitted, read_png(path), likelihood, config)
+            if args.profile and number > 0:
+                with jax.profiler.trace(str(traces / str(number)), create_perfetto_trace=True):
+                    infer_image(fitted, read_png(path), likelihood, config)
+            else:
+                infer_image(fitted, read_png(path), likelihood, config)
             total = time.perf_counter() - begin
             rendered = clock.seconds["render"] + clock.seconds["bases"]
             print(f"{path}: {total:.1f} s{' (with compilation)' if number == 0 else ''}; Mitsuba renders "
                   f"{rendered:.1f} s ({clock.seconds['render']:.1f} colour, {clock.seconds['bases']:.1f} bases; "
                   f"{100 * rendered / total:.0f}%), {clock.calls} callbacks, {clock.scenes} scenes "
                   f"({1e3 * rendered / max(clock.scenes, 1):.2f} ms per scene)", flush=True)
+            for trace in sorted((traces / str(number)).glob("**/perfetto_trace.json.gz")):
+                for name, seconds, calls in own_times(trace):
+                    print(f"    {seconds:7.2f} s {calls:7d} x  {name[:100]}")
 
 
 if __name__ == "__main__":

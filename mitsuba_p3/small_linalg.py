@@ -1,4 +1,4 @@
-"""Cholesky factors and solves of small symmetric positive definite matrices, written out.
+"""Cholesky factors and solves of small symmetric positive definite matrices, with no LAPACK call.
 
 The samplers factor many tiny matrices at once (the shading fields' K x K systems, K = 3 to
 18, per particle and region; the colour's 3 x 3 precision per prior component) and solve with
@@ -8,71 +8,95 @@ July 2026 split such a batch over XLA's intra-op thread pool and wait for the pi
 a pool thread (jax-ml/jax#36927, fixed by running it serially). Two independent calls then
 take both threads of a 2-core machine, each waiting for pieces that no thread is left to
 run: the process hangs with every thread idle (seen under ``--noise fields``: a solve and
-a log-determinant side by side). Written out with elementwise operations the factorisation
-has no custom call, cannot wait on the pool, and for these sizes costs no more.
+a log-determinant side by side). Made of elementwise products and sums, the factorisation
+has no custom call and cannot wait on the pool.
 
-Every function takes matrices (..., n, n) and batches over the leading axes; ``xp`` is numpy
-or jax.numpy. The loops run at trace time (n is static), so a jitted caller gets straight-line
-code of n^3 / 6 multiply-adds.
+Each function is a loop over the n columns (or rows) whose body works on whole rows at once,
+picking row j with a one-hot mask rather than an index: under JAX the loop is a
+``lax.fori_loop``, so a jitted caller gets one small loop body whatever n is, not n^3 / 6
+straight-line multiply-adds (those made the samplers' fused sweeps minutes of compilation);
+under numpy it is a Python loop over the same body. Each column costs n^2 rather than n j
+operations, about twice the scalar count, which is nothing beside the renders at these sizes.
+
+Every function takes matrices (..., n, n) and batches (and broadcasts) over the leading axes;
+``xp`` is numpy or jax.numpy; a factor is the lower-triangular array L (..., n, n) with
+A = L L'.
 """
 from __future__ import annotations
 
 import numpy as np
 
 
-def cholesky(a, xp=np) -> list:
-    """The lower Cholesky factor of SPD ``a`` (..., n, n) as rows of columns: ``L[i][j]`` (...) for
-    j <= i (:func:`as_matrix` stacks it)."""
+def _loop(n: int, body, init, xp, reverse: bool = False):
+    """``init`` carried through ``body(i, carry)`` for i = 0 .. n-1 (or n-1 .. 0): a ``lax.fori_loop``
+    under JAX, a Python loop under numpy."""
+    if xp is np:
+        carry = init
+        for i in (reversed(range(n)) if reverse else range(n)):
+            carry = body(i, carry)
+        return carry
+    from jax import lax
+
+    if reverse:
+        return lax.fori_loop(0, n, lambda k, carry: body(n - 1 - k, carry), init)
+    return lax.fori_loop(0, n, body, init)
+
+
+def _unit(i, n: int, dtype, xp):
+    """The one-hot vector e_i (n,) (``i`` may be traced)."""
+    return (xp.arange(n) == i).astype(dtype)
+
+
+def cholesky(a, xp=np):
+    """The lower Cholesky factor L (..., n, n) of SPD ``a`` (..., n, n), column by column."""
     n = a.shape[-1]
-    factor = [[None] * n for _ in range(n)]
-    for j in range(n):
-        diagonal = a[..., j, j] - sum((factor[j][k] ** 2 for k in range(j)), xp.zeros_like(a[..., j, j]))
-        factor[j][j] = xp.sqrt(diagonal)
-        for i in range(j + 1, n):
-            off = a[..., i, j] - sum((factor[i][k] * factor[j][k] for k in range(j)), xp.zeros_like(a[..., i, j]))
-            factor[i][j] = off / factor[j][j]
-    return factor
+
+    def column(j, lower):
+        e = _unit(j, n, a.dtype, xp)
+        row = xp.sum(lower * e[:, None], axis=-2)                     # L[j, :], zero from column j on
+        # v = a[:, j] - L L[j, :]': the column before scaling; its j-th entry is L[j, j]^2
+        v = xp.sum(a * e, axis=-1) - xp.sum(lower * row[..., None, :], axis=-1)
+        pivot = xp.sqrt(xp.sum(v * e, axis=-1))[..., None]
+        below = (xp.arange(n) > j).astype(a.dtype)
+        return lower + (below * v / pivot + e * pivot)[..., :, None] * e
+
+    return _loop(n, column, xp.zeros_like(a), xp)
 
 
-def rows(lower) -> list:
-    """A lower-triangular matrix (..., n, n) as a factor of :func:`cholesky`'s form, so that
-    :func:`forward` and :func:`backward` solve with a factor made elsewhere (the walk's scale)."""
+def forward(lower, b, xp=np):
+    """L^-1 b for a lower-triangular ``lower`` (..., n, n) and right-hand sides b (..., n) (the batch
+    axes broadcast: one factor may serve several right-hand sides)."""
     n = lower.shape[-1]
-    return [[lower[..., i, j] if j <= i else None for j in range(n)] for i in range(n)]
+
+    def row(i, y):
+        e = _unit(i, n, b.dtype, xp)
+        l_i = xp.sum(lower * e[:, None], axis=-2)                     # L[i, :]
+        value = (xp.sum(b * e, axis=-1) - xp.sum(l_i * y, axis=-1)) / xp.sum(l_i * e, axis=-1)
+        return y + value[..., None] * e
+
+    shape = np.broadcast_shapes(lower.shape[:-1], b.shape)
+    return _loop(n, row, xp.zeros(shape, b.dtype), xp)
 
 
-def as_matrix(factor: list, xp=np):
-    """(..., n, n) the factor of :func:`cholesky` as a lower-triangular array."""
-    n = len(factor)
-    zero = xp.zeros_like(factor[0][0])
-    return xp.stack([xp.stack([factor[i][j] if j <= i else zero for j in range(n)], axis=-1) for i in range(n)],
-                    axis=-2)
+def backward(lower, y, xp=np):
+    """L^-T y for a lower-triangular ``lower`` (..., n, n) and right-hand sides y (..., n)."""
+    n = lower.shape[-1]
+
+    def row(i, x):
+        e = _unit(i, n, y.dtype, xp)
+        l_i = xp.sum(lower * e, axis=-1)                              # L[:, i], the i-th row of L'
+        value = (xp.sum(y * e, axis=-1) - xp.sum(l_i * x, axis=-1)) / xp.sum(l_i * e, axis=-1)
+        return x + value[..., None] * e
+
+    shape = np.broadcast_shapes(lower.shape[:-1], y.shape)
+    return _loop(n, row, xp.zeros(shape, y.dtype), xp, reverse=True)
 
 
-def forward(factor: list, b, xp=np):
-    """L^-1 b for right-hand sides b (..., n)."""
-    n = len(factor)
-    y = []
-    for i in range(n):
-        y.append((b[..., i] - sum((factor[i][k] * y[k] for k in range(i)), xp.zeros_like(b[..., i]))) / factor[i][i])
-    return xp.stack(y, axis=-1)
-
-
-def backward(factor: list, y, xp=np):
-    """L^-T y for right-hand sides y (..., n)."""
-    n = len(factor)
-    x = [None] * n
-    for i in reversed(range(n)):
-        x[i] = (y[..., i] - sum((factor[k][i] * x[k] for k in range(i + 1, n)), xp.zeros_like(y[..., i]))
-                ) / factor[i][i]
-    return xp.stack(x, axis=-1)
-
-
-def solve(factor: list, b, xp=np):
+def solve(lower, b, xp=np):
     """A^-1 b for A = L L' (:func:`cholesky`) and right-hand sides b (..., n)."""
-    return backward(factor, forward(factor, b, xp), xp)
+    return backward(lower, forward(lower, b, xp), xp)
 
 
-def log_det(factor: list, xp=np):
+def log_det(lower, xp=np):
     """log det A (...) for A = L L'."""
-    return 2 * sum(xp.log(factor[i][i]) for i in range(len(factor)))
+    return 2 * xp.sum(xp.log(xp.diagonal(lower, axis1=-2, axis2=-1)), axis=-1)

@@ -825,9 +825,10 @@ def test_a_damaged_model_folder_is_one_line_naming_the_refit(tiny_model, tmp_pat
         model.scene(), model.channels, model.prior, model.noise
 
 
-def test_the_written_out_cholesky_is_lapacks():
+def test_the_loop_cholesky_is_lapacks():
     """:mod:`mitsuba_p3.small_linalg` (the samplers' factorisation with no LAPACK call) gives LAPACK's factor,
-    solves, triangular solves and log-determinant on a batch of SPD matrices, in numpy and in jitted JAX."""
+    solves, triangular solves and log-determinant on a batch of SPD matrices, in numpy and in jitted JAX
+    (where it is a ``fori_loop``), at the fields' largest size too, and JAX differentiates through it."""
     import jax
     import jax.numpy as jnp
 
@@ -839,7 +840,7 @@ def test_the_written_out_cholesky_is_lapacks():
     b = rng.normal(size=(4, 3, 5))
     lower = np.linalg.cholesky(a)
     factor = sl.cholesky(a)
-    np.testing.assert_allclose(sl.as_matrix(factor), lower, atol=1e-12)
+    np.testing.assert_allclose(factor, lower, atol=1e-12)
     np.testing.assert_allclose(sl.solve(factor, b), np.linalg.solve(a, b[..., None])[..., 0], atol=1e-12)
     np.testing.assert_allclose(sl.forward(factor, b), np.linalg.solve(lower, b[..., None])[..., 0], atol=1e-12)
     np.testing.assert_allclose(sl.backward(factor, b), np.linalg.solve(np.swapaxes(lower, -1, -2), b[..., None])[..., 0],
@@ -847,9 +848,23 @@ def test_the_written_out_cholesky_is_lapacks():
     np.testing.assert_allclose(sl.log_det(factor), np.linalg.slogdet(a)[1], atol=1e-12)
     # a lower-triangular matrix made elsewhere (the walk's scale), broadcast over a batch of right-hand sides
     many = rng.normal(size=(4, 3, 7, 5))
-    np.testing.assert_allclose(sl.forward(sl.rows(lower[..., None, :, :]), many),
+    np.testing.assert_allclose(sl.forward(lower[..., None, :, :], many),
                                np.linalg.solve(lower[..., None, :, :], many[..., None])[..., 0], atol=1e-12)
+    np.testing.assert_allclose(sl.backward(lower[..., None, :, :], many),
+                               np.linalg.solve(np.swapaxes(lower, -1, -2)[..., None, :, :], many[..., None])[..., 0],
+                               atol=1e-12)
+    big = rng.normal(size=(6, 18, 18))
+    big = big @ np.swapaxes(big, -1, -2) + 18 * np.eye(18)
+    np.testing.assert_allclose(sl.cholesky(big), np.linalg.cholesky(big), atol=1e-10)
     jitted = jax.jit(lambda m, v: (sl.solve(sl.cholesky(m, jnp), v, jnp), sl.log_det(sl.cholesky(m, jnp), jnp)))
     solved, log_det = jitted(jnp.asarray(a, jnp.float32), jnp.asarray(b, jnp.float32))
     np.testing.assert_allclose(np.asarray(solved), np.linalg.solve(a, b[..., None])[..., 0], atol=1e-4)
+    np.testing.assert_allclose(np.asarray(log_det), np.linalg.slogdet(a)[1], atol=1e-4)
+    np.testing.assert_allclose(np.asarray(jax.jit(lambda m: sl.cholesky(m, jnp))(jnp.asarray(big, jnp.float32))),
+                               np.linalg.cholesky(big), atol=1e-3)
+    # through the loop, d log det A / dA = A^-1 on the lower triangle the factor reads (doubled off the
+    # diagonal, where A_ij stands for A_ji too) and zero above it
+    gradient = jax.grad(lambda m: jnp.sum(sl.log_det(sl.cholesky(m, jnp), jnp)))(jnp.asarray(a[0, 0], jnp.float32))
+    inverse = np.linalg.inv(a[0, 0])
+    np.testing.assert_allclose(np.asarray(gradient), np.tril(2 * inverse) - np.diag(np.diag(inverse)), atol=1e-4)
     np.testing.assert_allclose(np.asarray(log_det), np.linalg.slogdet(a)[1], atol=1e-4)

@@ -666,7 +666,8 @@ def test_a_windowed_likelihood_scores_the_window_around_the_object(fitted, rende
 
 def test_the_shading_fields_likelihood_traces_the_object_it_scores(fitted):
     """Under ``--noise fields`` the core traces each hypothesis's object pixels in the scored window
-    (the same pixels the Mitsuba render shades as object, for every class), and its log likelihood, by
+    (the same pixels the Mitsuba render shades as object, for every class, and returns with its render
+    and with its bases), and its log likelihood, by
     the walk's path and by the material move's bases, is the fields' density of the render's residual
     with those pixels as the object's region; the fit wrote the form (sigma, a scale per region and degree,
     a power)."""
@@ -704,6 +705,10 @@ def test_the_shading_fields_likelihood_traces_the_object_it_scores(fitted):
         shaded = (np.abs(bases[..., 3, :]).sum(-1) == 0) & (np.abs(bases[..., :3, :]).sum((-2, -1)) > 0)
         objects = np.asarray(core.objects(z, observation))
         assert objects.sum() > 20 and np.array_equal(objects, shaded)
+        # the pixels the Mitsuba render returns with itself (what the samplers score) are the JAX tracer's
+        _, rendered = core._image(z, observation)
+        _, with_bases = core._image(z, observation, bases=True)
+        assert np.array_equal(np.asarray(rendered), objects) and np.array_equal(np.asarray(with_bases), objects)
         render = jnp.asarray(renderer.render(params)[crop][None])
         expected = float(fields_log_likelihood(observation["image"], render, objects[None], observation["empty"],
                                                likelihood)[0])
@@ -721,8 +726,8 @@ def test_the_shading_fields_likelihood_traces_the_object_it_scores(fitted):
 
     for channels in ("independent", "achromatic"):
         core = PosteriorCore(fitted, replace(likelihood, fields_channels=channels), "mitsuba", 120, 160)
-        bases = core._image(z, observation, bases=True)
-        gram = np.asarray(core._gram(bases, observation, 1.0, z))
+        bases, objects = core._image(z, observation, bases=True)
+        gram = np.asarray(core._gram(bases, objects, observation, 1.0))
         assert gram.shape == ((3, 4, 4) if channels == "independent" else (3, 3, 4, 4))
         full = gram if gram.ndim == 4 else np.einsum("cd,cij->cdij", np.eye(3), gram)
         p = contract_params(core.prior, z)
@@ -734,7 +739,7 @@ def test_the_shading_fields_likelihood_traces_the_object_it_scores(fitted):
             image = (colour * (p["ambient"] * bases[..., 0, :] + p["diffuse"] * bases[..., 1, :])
                      + p["specular"] * bases[..., 2, :] + bases[..., 3, :])
             assert float(jnp.max(image)) < 1.0
-            values.append((float(core._score(z, image, observation)),
+            values.append((float(core._score(image, objects, observation)),
                            -0.5 * np.einsum("ci,cdij,dj->", coefficients, full, coefficients)))
         assert values[0][0] - values[1][0] == pytest.approx(values[0][1] - values[1][1], rel=1e-3, abs=1e-3)
         if channels == "achromatic":

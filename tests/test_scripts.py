@@ -332,10 +332,11 @@ def test_the_posterior_time_probe_counts_renders_and_puts_the_renderer_back(monk
 
     from mitsuba_p3.render import mitsuba as mitsuba_renderer
 
-    def render(renderer, params=None):
-        return np.zeros((len(params["theta"]), 2, 2, 3))
+    def render(renderer, params=None, objects=False):
+        image = np.zeros((len(params["theta"]), 2, 2, 3))
+        return (image, np.zeros(image.shape[:3], bool)) if objects else image
 
-    def render_bases(renderer, params=None):
+    def render_bases(renderer, params=None, objects=False):
         return np.zeros((len(params["theta"]), 2, 2, 4, 3))
 
     monkeypatch.setattr(mitsuba_renderer.MitsubaRenderer, "render", render)
@@ -344,9 +345,29 @@ def test_the_posterior_time_probe_counts_renders_and_puts_the_renderer_back(monk
     with probe.RenderClock() as clock:
         cls = mitsuba_renderer.MitsubaRenderer
         cls.render(None, {"theta": np.zeros(5)})
-        cls.render(None, {"theta": np.zeros(3)})
+        image, objects = cls.render(None, {"theta": np.zeros(3)}, objects=True)     # the options pass through
+        assert image.shape == (3, 2, 2, 3) and objects.shape == (3, 2, 2)
         cls.render_bases(None, {"theta": np.zeros(4)})
         assert (clock.calls, clock.scenes) == (3, 12)
         assert clock.seconds["render"] >= 0.0 and clock.seconds["bases"] >= 0.0
     assert mitsuba_renderer.MitsubaRenderer.render is render
     assert mitsuba_renderer.MitsubaRenderer.render_bases is render_bases
+
+
+def test_the_posterior_time_probe_counts_each_event_by_its_own_time(tmp_path):
+    """experiments/probe_posterior_time.py ``--profile``: an event's own time is its duration less what ran
+    nested inside it on its thread (a while loop is not charged for the kernels it ran), threads apart."""
+    import gzip
+    import json
+
+    probe = load_script("probe_posterior_time")
+    events = [{"ph": "X", "name": "sweeps", "ts": 0, "dur": 100, "pid": 1, "tid": 1},
+              {"ph": "X", "name": "fusion", "ts": 10, "dur": 30, "pid": 1, "tid": 1},
+              {"ph": "X", "name": "fusion", "ts": 50, "dur": 20, "pid": 1, "tid": 1},
+              {"ph": "X", "name": "callback", "ts": 55, "dur": 60, "pid": 1, "tid": 2},
+              {"ph": "i", "name": "marker", "ts": 5, "pid": 1, "tid": 1}]
+    path = tmp_path / "perfetto_trace.json.gz"
+    with gzip.open(path, "wt") as f:
+        json.dump({"traceEvents": events}, f)
+    table = {name: (seconds * 1e6, calls) for name, seconds, calls in probe.own_times(path)}
+    assert table == {"callback": (60, 1), "fusion": (50, 2), "sweeps": (50, 1)}

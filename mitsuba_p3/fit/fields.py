@@ -220,7 +220,7 @@ def marginal_log_likelihood(statistics: tuple, sigma: float, variances, xp=np, s
     eye = xp.eye(size, dtype=gram.dtype)
     variances = xp.asarray(variances, gram.dtype)
     # one Cholesky factor of M = G + sigma^2 T^-1 gives the fields' means M^-1 b and the Occam factor:
-    # det(I + T G / sigma^2) = det(T) det(M) / sigma^(2K) (written out: :mod:`mitsuba_p3.small_linalg`)
+    # det(I + T G / sigma^2) = det(T) det(M) / sigma^(2K) (no LAPACK call: :mod:`mitsuba_p3.small_linalg`)
     factor = cholesky(gram + (sigma ** 2 / variances)[..., None] * eye, xp)
     means = solve(factor, projected, xp)
     quadratic = squares - xp.sum(projected * means, axis=(-2, -1))

@@ -16,7 +16,7 @@ off them.
 
 :class:`MaterialMoves` is a mixin of :class:`mitsuba_p3.infer.model.PosteriorCore`: it uses the core's
 ``prior``, likelihood ``config``, ``params`` (z -> the renderer contract), ``_image`` (a render or the bases
-of z for an observation), ``_score``, ``objects`` and ``window_log_term``.
+of z for an observation, and the pixels its object covers), ``_score`` and ``window_log_term``.
 """
 from __future__ import annotations
 
@@ -53,10 +53,9 @@ class MixtureConditional(NamedTuple):
 
         precision = jax.vmap(jnp.diag)(1.0 / var) + lam                             # (C, 3, 3)
         h = mu / var + eta
-        factor = small_linalg.cholesky(precision, jnp)       # written out: no LAPACK call (small_linalg)
-        chol = small_linalg.as_matrix(factor, jnp)
-        mean = small_linalg.solve(factor, h, jnp)
-        log_det_p = small_linalg.log_det(factor, jnp)
+        chol = small_linalg.cholesky(precision, jnp)         # no LAPACK call (small_linalg)
+        mean = small_linalg.solve(chol, h, jnp)
+        log_det_p = small_linalg.log_det(chol, jnp)
         log_evidence = (-0.5 * jnp.sum(jnp.log(var), axis=1) - 0.5 * log_det_p + 0.5 * jnp.sum(h * mean, axis=1)
                         - 0.5 * jnp.sum(mu * mu / var, axis=1))
         return cls(jax.nn.log_softmax(log_w + log_evidence), mean, precision, chol, log_det_p)
@@ -77,8 +76,7 @@ class MixtureConditional(NamedTuple):
         k_combo, k_noise = jax.random.split(key)
         combo = jax.random.categorical(k_combo, self.log_mix)
         noise = jax.random.normal(k_noise, (3,))
-        factor = [[self.chol[combo][i, j] for j in range(3)] for i in range(3)]
-        return self.mean[combo] + small_linalg.backward(factor, noise, jnp)
+        return self.mean[combo] + small_linalg.backward(self.chol[combo], noise, jnp)
 
 
 class MaterialMoves:
@@ -151,24 +149,26 @@ class MaterialMoves:
         import jax.numpy as jnp
 
         k_colour, k_weights, k_jump = jax.random.split(key, 3)
-        bases = self._image(state.position, observation, bases=True)
-        gram = self._gram(bases, observation, tempering, state.position)
-        # the material moves leave the pose, so the window's term (mitsuba_p3.infer.window) is the state's throughout
+        bases, objects = self._image(state.position, observation, bases=True)
+        gram = self._gram(bases, objects, observation, tempering)
+        # the material moves leave the pose, so the window's term (mitsuba_p3.infer.window) and the object's
+        # pixels are the state's throughout
         term = self.window_log_term(state.position, observation)
-        target = (tempering, log_prior or self.prior.log_prob, term)
+        target = (tempering, log_prior or self.prior.log_prob, term, objects)
         jumped = jnp.asarray(False)
         if jump:
             state, jumped, bases, gram = self._kind_jump(k_jump, state, bases, gram, observation, target)
         state, colour_ok = self._colour_move(k_colour, state, bases, gram, observation, target)
         state, weights_ok = self._weights_move(k_weights, state, bases, gram, observation, target)
-        loglik = self._score(state.position, self._image_from_bases(bases, state.position), observation) + term
+        loglik = self._score(self._image_from_bases(bases, state.position), objects, observation) + term
         return state, colour_ok & weights_ok, loglik, jumped
 
-    def _gram(self, bases, observation, tempering, z):
+    def _gram(self, bases, objects, observation, tempering):
         """The tempered precision-weighted inner products of the bases A, D, S and the residual
         r = I_obs - F, each taken in one colour channel: both material conditionals need only these.
         (3, 4, 4) per channel where the noise keeps the channels apart; (3, 3, 4, 4) [c, c', i, j]
-        where it couples them (shading fields shared across channels, :mod:`mitsuba_p3.fit.fields`)."""
+        where it couples them (shading fields shared across channels, :mod:`mitsuba_p3.fit.fields`, whose
+        regions need the pixels the object covers, ``objects``; None for the other noise forms)."""
         import jax.numpy as jnp
 
         vectors = jnp.concatenate([bases[..., :3, :], (observation["image"] - bases[..., 3, :])[..., None, :]],
@@ -183,14 +183,14 @@ class MaterialMoves:
         # the Gaussian part of the likelihood (outliers are left to the MH test)
         gram = jnp.einsum("icjc->cij", full)
         if self.config.fields is not None:
-            correction = self._fields_correction(vectors, bases, observation, z)    # (3, 3, 4, 4)
+            correction = self._fields_correction(vectors, bases, objects, observation)  # (3, 3, 4, 4)
             if self.config.fields_channels == "independent":
                 gram = gram - jnp.einsum("ccij->cij", correction)
             else:
                 gram = jnp.einsum("cd,cij->cdij", jnp.eye(3, dtype=gram.dtype), gram) - correction
         return gram * precision
 
-    def _fields_correction(self, vectors, bases, observation, z):
+    def _fields_correction(self, vectors, bases, objects, observation):
         """(3, 3, 4, 4) [c, c', i, j] what the shading fields take off the inner products of vector i in
         channel c and vector j in channel c': under covariance sigma^2 I + B T B' the precision is
         (I - B (G + sigma^2 T^-1)^-1 B') / sigma^2, so x'Qy is the white x'y / sigma^2 less
@@ -203,8 +203,7 @@ class MaterialMoves:
         from ..fit.fields import column_statistics, field_statistics
 
         height, width = vectors.shape[:2]
-        masks = fields_masks(bases[..., 3, :], self.objects(z, observation), observation["empty"],
-                             fields_regions(self.config))
+        masks = fields_masks(bases[..., 3, :], objects, observation["empty"], fields_regions(self.config))
         variances, basis, loading = fields_form(self.config, height, width)
         statistics = field_statistics(jnp.moveaxis(vectors, -2, 0), masks, basis, xp=jnp)   # b: (4, R, k, 3)
         _, gram, _, _ = column_statistics(statistics, loading, xp=jnp)                       # (R, K, K)
@@ -242,8 +241,8 @@ class MaterialMoves:
 
         position = state.position
         moved = position.at[s].set((alpha - loc) / std)
-        new_bases = self._image(moved, observation, bases=True)
-        new_gram = self._gram(new_bases, observation, target[0], moved)
+        new_bases, _ = self._image(moved, observation, bases=True)          # the same pose: the same objects
+        new_gram = self._gram(new_bases, target[3], observation, target[0])
         colour = self.params(position)["colour"]
         dims, w_loc, w_std = self._weight_coordinates()
         old, new = self._weights_conditional(gram, colour), self._weights_conditional(new_gram, colour)
@@ -379,15 +378,15 @@ class MaterialMoves:
 
     def _independence_mh(self, key, state, new_position, bases, log_q_ratio, observation, target):
         """Accept or reject an independence proposal with the exact (tempered) log joint, the image
-        computed from the bases; ``target`` is (tempering, log prior, the window's term of the pose, which
-        a material move keeps)."""
+        computed from the bases; ``target`` is (tempering, log prior, the window's term of the pose and the
+        pixels its object covers, which a material move keeps)."""
         import jax
         import jax.numpy as jnp
 
-        tempering, log_prior, term = target
+        tempering, log_prior, term, objects = target
         image = self._image_from_bases(bases, new_position)
         new_logdensity = (log_prior(new_position)
-                          + tempering * (self._score(new_position, image, observation) + term))
+                          + tempering * (self._score(image, objects, observation) + term))
         accept = jnp.log(jax.random.uniform(key)) < new_logdensity - state.logdensity + log_q_ratio
         return (type(state)(jnp.where(accept, new_position, state.position),
                             jnp.where(accept, new_logdensity, state.logdensity)), accept)

@@ -34,7 +34,8 @@ def contract_params(prior: Prior, z) -> dict:
     return render_params(prior.constrain(z), xp=jnp)
 
 
-def mitsuba_render_function(renderer, bases: bool = False, window: tuple[int, int] | None = None) -> Callable:
+def mitsuba_render_function(renderer, bases: bool = False, window: tuple[int, int] | None = None,
+                            objects: bool = False) -> Callable:
     """A JAX function params -> image(s) that renders with Mitsuba on the host.
 
     Works on one parameter set (image (H, W, 3)) and under ``jax.vmap`` (the
@@ -42,6 +43,8 @@ def mitsuba_render_function(renderer, bases: bool = False, window: tuple[int, in
     ``bases`` it returns the material bases (H, W, 4, 3) of ``renderer.render_bases``.
     With ``window`` (height, width) the function is ``render(params, offset)``: only the
     window of the image whose top-left pixel is ``offset`` (2,) (:meth:`MitsubaRenderer.window`).
+    With ``objects`` it returns (image or bases, the pixels the object covers (H, W) bool), both from
+    the one render: the shading fields' regions without tracing the object again in JAX.
     """
     import jax
     import jax.numpy as jnp
@@ -68,12 +71,16 @@ def mitsuba_render_function(renderer, bases: bool = False, window: tuple[int, in
         count = int(np.prod(batch_shape, dtype=np.int64))
         params = {key: np.broadcast_to(a, batch_shape + OBJECT_SHAPES[key]).reshape((count,) + OBJECT_SHAPES[key])
                   for key, a in zip(OBJECT_KEYS, arrays)}
-        images = view.render_bases(params) if bases else view.render(params)
-        return np.asarray(images, np.float32).reshape(batch_shape + (height, width) + pixel)
+        out = (view.render_bases if bases else view.render)(params, **({"objects": True} if objects else {}))
+        images, covered = out if objects else (out, None)
+        images = np.asarray(images, np.float32).reshape(batch_shape + (height, width) + pixel)
+        return (images, np.asarray(covered, bool).reshape(batch_shape + (height, width))) if objects else images
 
     def render(params: dict, offset=None):
         batch_shape = jnp.shape(params["theta"])
         out = jax.ShapeDtypeStruct(batch_shape + (height, width) + pixel, jnp.float32)
+        if objects:
+            out = (out, jax.ShapeDtypeStruct(batch_shape + (height, width), jnp.bool_))
         extra = [jnp.asarray(offset, jnp.int32)] if window else []
         return jax.pure_callback(host, out, *[params[k] for k in OBJECT_KEYS], *extra, vmap_method="expand_dims")
 
@@ -149,13 +156,12 @@ class PosteriorCore(MaterialMoves):
         self.empty = self.renderer.render_empty()
         self.footprint_threshold = fitted.noise.footprint if (fitted.root / "noise.json").exists() else None
         self.spectra = fitted.noise_spectra if likelihood.spectral else None
-        self._windowed = {}       # (window size, bases) -> render function (see :meth:`_image`)
-        if renderer == "mitsuba":
-            self._render = mitsuba_render_function(self.renderer)
-            self._bases = mitsuba_render_function(self.renderer, bases=True)
-        else:
-            self._render = jax_render_function(self.renderer)
-            self._bases = jax_render_function(self.renderer, bases=True)
+        self._scored = {}         # (window size or None, bases) -> render function (see :meth:`_image`)
+        # the shading fields' regions need the pixels each render's object covers: Mitsuba returns them
+        # with the render itself; the JAX tracer's path traces them apart (:meth:`objects`)
+        self._objects_rendered = likelihood.fields is not None and renderer == "mitsuba"
+        # the whole image's render (:meth:`render`); the samplers' come from :meth:`_image`
+        self._render = (mitsuba_render_function if renderer == "mitsuba" else jax_render_function)(self.renderer)
 
     @classmethod
     def shared(cls, fitted: FittedModel, likelihood: LikelihoodConfig, renderer: str, height: int,
@@ -206,7 +212,8 @@ class PosteriorCore(MaterialMoves):
     def objects(self, z, observation):
         """(h, w) the pixels of the scored image (the observation's window, or the whole image) that z's
         object covers, traced from its pose without shading (JAX; vmap for many); None unless the
-        likelihood needs them (the shading fields' form)."""
+        likelihood needs them (the shading fields' form). The samplers take Mitsuba's from its render
+        (:meth:`_image`); this serves the JAX tracer's path and SBC's simulations."""
         if self.config.fields is None:
             return None
         import jax
@@ -224,23 +231,25 @@ class PosteriorCore(MaterialMoves):
         covered = silhouette(params, jnp.asarray(origin), rays.reshape(-1, 3), self.renderer.floor_half_size)
         return covered.reshape(height, width)
 
-    def _score(self, z, image, observation):
-        """The score of one render of z (h, w, 3) (:func:`~mitsuba_p3.infer.likelihood.score`)."""
-        objects = self.objects(z, observation)
+    def _score(self, image, objects, observation):
+        """The score of one render (h, w, 3) whose object covers ``objects`` (h, w; None unless the
+        likelihood needs them) (:func:`~mitsuba_p3.infer.likelihood.score`)."""
         return score(observation, image[None], self.config, self.channels,
                      None if objects is None else objects[None])[0]
 
     def _image(self, z, observation, bases: bool = False):
-        """The render (or material bases) of z that ``observation`` scores: its window, or the whole image."""
-        params = self.params(z)
-        if "window" not in observation:
-            return (self._bases if bases else self._render)(params)
-        size = tuple(np.shape(observation["image"])[:2])
+        """The render (or material bases) of z that ``observation`` scores -- its window, or the whole
+        image -- and the pixels of it that z's object covers (None unless the likelihood needs them)."""
+        size = tuple(np.shape(observation["image"])[:2]) if "window" in observation else None
         key = (size, bases)
-        if key not in self._windowed:
-            make = mitsuba_render_function if self.renderer_kind == "mitsuba" else jax_render_function
-            self._windowed[key] = make(self.renderer, bases, size)
-        return self._windowed[key](params, observation["window"])
+        if key not in self._scored:
+            if self.renderer_kind == "mitsuba":
+                self._scored[key] = mitsuba_render_function(self.renderer, bases, size, self._objects_rendered)
+            else:
+                self._scored[key] = jax_render_function(self.renderer, bases, size)
+        params = self.params(z)
+        out = self._scored[key](params, observation["window"]) if size else self._scored[key](params)
+        return out if self._objects_rendered else (out, self.objects(z, observation))
 
     @functools.cached_property
     def camera_rays(self) -> tuple[np.ndarray, np.ndarray]:
@@ -265,14 +274,14 @@ class PosteriorCore(MaterialMoves):
 
     def image_log_likelihood(self, z, observation):
         """The score of z's render alone, without the window's term (the empty floor's evidence needs it)."""
-        return self._score(z, self._image(z, observation), observation)
+        return self._score(*self._image(z, observation), observation)
 
     def log_likelihood_parts(self, z, observation):
         """(colour, whole) log likelihood of one position z from one render (JAX; vmap for many): the
         colour term alone, and with the neural term at the observation's weight (NP3's bridge)."""
-        image, term = self._image(z, observation), self.window_log_term(z, observation)
-        return (self._score(z, image, {**observation, "neural_weight": 0.0}) + term,
-                self._score(z, image, observation) + term)
+        (image, objects), term = self._image(z, observation), self.window_log_term(z, observation)
+        return (self._score(image, objects, {**observation, "neural_weight": 0.0}) + term,
+                self._score(image, objects, observation) + term)
 
     def logdensity(self, z, observation):
         """log p(z) + log p(I | z) of one position z (15,) (JAX; vmap for many)."""

@@ -119,9 +119,8 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str, cha
         back = quarters(proposed, centres, jnp) if chart else copy
         from_new, _ = quarter_turn(proposed, -back, jnp)
         to_old, log_unturn_back = quarter_turn(z, -back, jnp)
-        # the reverse step's noise, L^-1 (z - z'): written out, no LAPACK call (mitsuba_p3/small_linalg.py)
-        reverse = small_linalg.forward(small_linalg.rows((tril + jnp.diag(1.0 - mask))[:, None]), to_old - from_new,
-                                       jnp)
+        # the reverse step's noise, L^-1 (z - z'): no LAPACK call (mitsuba_p3/small_linalg.py)
+        reverse = small_linalg.forward((tril + jnp.diag(1.0 - mask))[:, None], to_old - from_new, jnp)
         crossed = (back - copy) % 4 != 0
         log_hastings = jnp.where(crossed, 0.5 * jnp.sum(noise ** 2 - reverse ** 2, axis=-1) + log_unturn_back,
                                  log_unturn) + log_turn

@@ -150,30 +150,50 @@ class MitsubaRenderer(Renderer):
         colour = self._shade(p)
         return mi.TensorXf(dr.ravel(colour), shape=(p.batch, self.height, self.width, 3))
 
-    def render(self, params: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
-        """Render the contract mapping; (H, W, 3) or (B, H, W, 3) float32 in [0, 1]."""
+    def render(self, params: Mapping[str, np.ndarray] | None = None, objects: bool = False):
+        """Render the contract mapping; (H, W, 3) or (B, H, W, 3) float32 in [0, 1]. With ``objects``,
+        also the pixels whose ray meets the object first, (H, W) or (B, H, W) bool, from the same rays
+        and launch (:meth:`covered`)."""
         merged = self.merged(params)
+        if objects:
+            return self._with_objects(merged, bases=False)
         image = self.render_drjit(self._to_drjit_cached(merged))
         out = image.numpy()
         return out if is_batched(merged) else out[0]
 
-    def render_bases(self, params: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
+    def render_bases(self, params: Mapping[str, np.ndarray] | None = None, objects: bool = False):
         """The image's material bases, (H, W, 4, 3) or (B, H, W, 4, 3): A, D, S and F.
 
         On the object's pixels the image is ``clip(c (k_a A + k_d D) + k_s S)``: A is the
         ambient light, D and S the light sums of the Phong diffuse and specular terms.
         F is the image elsewhere (and 0 on the object). One render serves any colour and
-        weights at this pose, class and shininess (:meth:`PosteriorModel.material_move`)."""
+        weights at this pose, class and shininess (:meth:`PosteriorModel.material_move`).
+        With ``objects``, also the object's pixels, as :meth:`render`'s."""
         merged = self.merged(params)
+        if objects:
+            return self._with_objects(merged, bases=True)
+        out = self._evaluated(merged, bases=True)[0]
+        return out if is_batched(merged) else out[0]
+
+    def _with_objects(self, merged: dict, bases: bool):
+        out, covered = self._evaluated(merged, bases, objects=True)
+        return (out, covered) if is_batched(merged) else (out[0], covered[0])
+
+    def _evaluated(self, merged: dict, bases: bool, objects: bool = False) -> tuple:
+        """(B, H, W, 3) colours, or (B, H, W, 4, 3) bases, and with ``objects`` the (B, H, W) object
+        pixels, evaluated in one launch (no AD)."""
         p = self._to_drjit_cached(merged)
-        check_memory(p.batch * self.height * self.width, self.memory_limit, "bases")
+        check_memory(p.batch * self.height * self.width, self.memory_limit, "bases" if bases else "image")
         dr.detail.new_scope(_BACKEND)  # see render_drjit
         self._set_pattern(p)
-        parts = self._shade(p, bases=True)
+        shaded, hit_object = self._shade(p, bases=bases, objects=True)
+        parts = shaded if bases else (shaded,)
         flat = [part[channel] for part in parts for channel in range(3)]
-        dr.eval(*flat)
-        out = np.stack([v.numpy() for v in flat], axis=-1).reshape(p.batch, self.height, self.width, 4, 3)
-        return out if is_batched(merged) else out[0]
+        covered = [dr.select(hit_object, 1.0, 0.0)] if objects else []
+        dr.eval(*flat, *covered)
+        shape = (p.batch, self.height, self.width)
+        out = np.stack([v.numpy() for v in flat], axis=-1).reshape(shape + ((4, 3) if bases else (3,)))
+        return (out,) + tuple(v.numpy().reshape(shape) > 0.5 for v in covered)
 
     def vjp(self, params: Mapping[str, np.ndarray] | None, cotangent: np.ndarray) -> dict[str, np.ndarray]:
         """Gradients of ``sum(render(params) * cotangent)`` for every float parameter.
@@ -314,8 +334,9 @@ class MitsubaRenderer(Renderer):
             visible += dr.select(occluded, 0.0, weight)
         return visible
 
-    def _shade(self, p: DrParams, bases: bool = False):
-        """The image's colours per ray or, with ``bases``, its material bases (A, D, S, F)."""
+    def _shade(self, p: DrParams, bases: bool = False, objects: bool = False):
+        """The image's colours per ray or, with ``bases``, its material bases (A, D, S, F); with
+        ``objects``, (that, whether each ray meets the object first)."""
         rays = p.batch * self.height * self.width
         differentiating = any(dr.grad_enabled(v) for v in p.differentiable().values())
         batch_index, direction = self._rays(p, differentiating)
@@ -385,7 +406,7 @@ class MitsubaRenderer(Renderer):
                                                      dr.clip)
         result = albedo * (ambient * ambient_light + diffuse * lit_diffuse) + specular * lit_specular
         image = dr.select(valid, dr.clip(result, 0.0, 1.0), 0.0)
-        if not bases:
-            return image
-        return (dr.select(hit_object, ambient_light, 0.0), dr.select(hit_object, lit_diffuse, 0.0),
-                dr.select(hit_object, lit_specular, 0.0), dr.select(hit_object, 0.0, image))
+        if bases:
+            image = (dr.select(hit_object, ambient_light, 0.0), dr.select(hit_object, lit_diffuse, 0.0),
+                     dr.select(hit_object, lit_specular, 0.0), dr.select(hit_object, 0.0, image))
+        return (image, hit_object) if objects else image
