@@ -153,7 +153,7 @@ class MitsubaRenderer(Renderer):
     def render(self, params: Mapping[str, np.ndarray] | None = None, objects: bool = False):
         """Render the contract mapping; (H, W, 3) or (B, H, W, 3) float32 in [0, 1]. With ``objects``,
         also the pixels whose ray meets the object first, (H, W) or (B, H, W) bool, from the same rays
-        and launch (:meth:`covered`)."""
+        and launch (the shading fields' object region, :meth:`~mitsuba_p3.infer.model.PosteriorCore._image`)."""
         merged = self.merged(params)
         if objects:
             return self._with_objects(merged, bases=False)
