@@ -30,6 +30,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from mitsuba_p3.fit.model import FittedModel
 from mitsuba_p3.images import read_png
 from mitsuba_p3.infer.likelihood import DEFAULT_NOISE
@@ -63,7 +65,8 @@ class RenderClock:
             out = method(renderer, params, **options)
             self.seconds[name] += time.perf_counter() - begin
             self.calls += 1
-            self.scenes += len(next(iter(params.values()))) if params else 1
+            theta = (params or {}).get("theta")      # (B,) for a batch of scenes, a scalar for one
+            self.scenes += len(theta) if np.ndim(theta) == 1 else 1
             return out
         return timed
 

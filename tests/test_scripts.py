@@ -333,7 +333,7 @@ def test_the_posterior_time_probe_counts_renders_and_puts_the_renderer_back(monk
     from mitsuba_p3.render import mitsuba as mitsuba_renderer
 
     def render(renderer, params=None, objects=False):
-        image = np.zeros((len(params["theta"]), 2, 2, 3))
+        image = np.zeros((np.size(params["theta"]), 2, 2, 3))
         return (image, np.zeros(image.shape[:3], bool)) if objects else image
 
     def render_bases(renderer, params=None, objects=False):
@@ -348,7 +348,8 @@ def test_the_posterior_time_probe_counts_renders_and_puts_the_renderer_back(monk
         image, objects = cls.render(None, {"theta": np.zeros(3)}, objects=True)     # the options pass through
         assert image.shape == (3, 2, 2, 3) and objects.shape == (3, 2, 2)
         cls.render_bases(None, {"theta": np.zeros(4)})
-        assert (clock.calls, clock.scenes) == (3, 12)
+        cls.render(None, {"theta": np.float32(0.5), "scale": np.ones(3)})      # one scene, not its scale's 3
+        assert (clock.calls, clock.scenes) == (4, 13)
         assert clock.seconds["render"] >= 0.0 and clock.seconds["bases"] >= 0.0
     assert mitsuba_renderer.MitsubaRenderer.render is render
     assert mitsuba_renderer.MitsubaRenderer.render_bases is render_bases
