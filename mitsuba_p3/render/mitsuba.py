@@ -10,7 +10,9 @@ of B parameter sets is a single launch of B*H*W rays. The floor z = 0 is
 intersected analytically and shaded by a ``phong`` BSDF whose pattern is a
 Mitsuba bitmap texture. Shading sums :func:`~mitsuba_p3.render.phong.phong_terms` over the lights;
 with shadows on, each light's visibility is the share of its disc's fixed sample points that a
-shadow ray reaches (:mod:`.soft_shadows`; one point, the centre, for hard shadows).
+shadow ray reaches (:mod:`.soft_shadows`; one point, the centre, for hard shadows). Camera rays meet
+the object in Mitsuba's scene; shadow rays only ask whether they are blocked, and that is answered
+in closed form for the three canonical shapes, in the same kernel (:meth:`MitsubaRenderer._occluded`).
 
 Gradients flow (Dr.Jit AD) to colours, materials, lights, ambient light and the
 floor; the geometry is detached, since visibility edges make plain-AD pose
@@ -57,6 +59,50 @@ def _box_interval(origin, direction):
     t_b = (mi.Vector3f(*_BOX_HI) - origin) * inv
     t_near, t_far = dr.minimum(t_a, t_b), dr.maximum(t_a, t_b)
     return dr.max(t_near), dr.min(t_far)
+
+
+def _within(t, reach):
+    """Which distances ``t`` lie on a shadow ray: in [0, reach] (Mitsuba's own bounds test)."""
+    return (t >= 0.0) & (t <= reach)
+
+
+def _blocks_sphere(o, d, reach):
+    """Whether rays (unit ``d``) meet the unit sphere about (0, 0, 1) within ``reach``; the
+    closest-approach form, as the JAX tracer's, keeps float32 precise."""
+    oc = o - mi.Vector3f(0.0, 0.0, 1.0)
+    t_mid = -dr.dot(oc, d)
+    closest = oc + t_mid * d
+    r2 = dr.squared_norm(closest)
+    half = dr.safe_sqrt(1.0 - r2)
+    return (r2 <= 1.0) & (_within(t_mid - half, reach) | _within(t_mid + half, reach))
+
+
+def _blocks_box(o, d, reach):
+    """Whether rays meet the box [-1, 1]^2 x [0, 2] within ``reach`` (slabs)."""
+    t_in, t_out = _box_interval(o, d)
+    return (t_out >= dr.maximum(t_in, 0.0)) & (dr.maximum(t_in, 0.0) <= reach)
+
+
+def _blocks_cylinder(o, d, reach):
+    """Whether rays meet the closed cylinder x^2 + y^2 <= 1, 0 <= z <= 2 within ``reach``: its
+    side (closest-approach quadratic in x, y) or either cap."""
+    a = d.x * d.x + d.y * d.y
+    a_safe = dr.select(a > 1e-20, a, 1.0)
+    t_mid = -(o.x * d.x + o.y * d.y) / a_safe
+    cx, cy = o.x + t_mid * d.x, o.y + t_mid * d.y
+    r2 = cx * cx + cy * cy
+    half = dr.safe_sqrt((1.0 - r2) / a_safe)
+    side = (a > 1e-20) & (r2 <= 1.0)
+    blocked = dr.zeros(mi.Bool, dr.width(a))
+    for t in (t_mid - half, t_mid + half):
+        z = o.z + t * d.z
+        blocked |= side & _within(t, reach) & (z >= 0.0) & (z <= 2.0)
+    dz = dr.select(dr.abs(d.z) > 1e-12, d.z, 1e-12)
+    for height in (0.0, 2.0):
+        t = (height - o.z) / dz
+        x, y = o.x + t * d.x, o.y + t * d.y
+        blocked |= _within(t, reach) & (x * x + y * y <= 1.0)
+    return blocked
 
 
 class MitsubaRenderer(Renderer):
@@ -272,6 +318,21 @@ class MitsubaRenderer(Renderer):
         normal = dr.normalize(_yaw(cos_t, sin_t, si.sh_frame.n / scale))
         return si.is_valid(), (start + si.t) / length, normal
 
+    def _occluded(self, frame, origin_w, direction_w, max_t, active=True):
+        """Whether shadow rays (unit world ``direction_w``) meet the object within ``max_t``: the
+        canonical shapes' occlusion in closed form, Dr.Jit arithmetic inside the render's kernel.
+        It gives the answer of Mitsuba's scene (``_trace_object``, the reference in
+        tests/test_render.py) without a ray-tracing call out of the kernel per light, which cost
+        more than all the rest of a shadowed render (docs/notebook.md, "Shadow rays in closed form")."""
+        origin, direction, length = self._to_object(frame, origin_w, direction_w)
+        slot = frame[4]
+        origin = origin - mi.Vector3f(slot, 0.0, 0.0)
+        reach = max_t * length
+        blocked = dr.select(slot < 0.5 * SLOT_SPACING, _blocks_sphere(origin, direction, reach),
+                            dr.select(slot < 1.5 * SLOT_SPACING, _blocks_box(origin, direction, reach),
+                                      _blocks_cylinder(origin, direction, reach)))
+        return blocked & active
+
     def _rays(self, p: DrParams, differentiating: bool = False):
         """Per-ray batch index (None for an unbatched, non-AD render) and camera direction."""
         hw = self.height * self.width
@@ -316,7 +377,7 @@ class MitsubaRenderer(Renderer):
         if self.shadow_samples == 1:  # the light's centre, as seen from the point itself
             to_light = centre - point
             distance = dr.norm(to_light)
-            occluded = self._trace_object(frame, start, to_light / distance, distance, test_only=True, active=active)
+            occluded = self._occluded(frame, start, to_light / distance, distance, active=active)
             return dr.select(occluded, 0.0, 1.0)
         axis = dr.normalize(centre - start)
         # Duff et al.'s orthonormal basis about the axis (the JAX tracer uses the same formula)
@@ -330,7 +391,7 @@ class MitsubaRenderer(Renderer):
         for x, y in self.shadow_pattern.tolist():
             to_light = centre + radius * (x * first + y * second) - start
             distance = dr.norm(to_light)
-            occluded = self._trace_object(frame, start, to_light / distance, distance, test_only=True, active=active)
+            occluded = self._occluded(frame, start, to_light / distance, distance, active=active)
             visible += dr.select(occluded, 0.0, weight)
         return visible
 
