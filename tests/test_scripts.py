@@ -372,3 +372,18 @@ def test_the_posterior_time_probe_counts_each_event_by_its_own_time(tmp_path):
         json.dump({"traceEvents": events}, f)
     table = {name: (seconds * 1e6, calls) for name, seconds, calls in probe.own_times(path)}
     assert table == {"callback": (60, 1), "fusion": (50, 2), "sweeps": (50, 1)}
+
+
+def test_the_delayed_acceptance_probe_counts_a_perfect_and_a_blind_screen():
+    """experiments/probe_delayed_acceptance.py's rates: a screen that is the full likelihood accepts
+    what the plain walk accepts and pays a full render only for those it passes; a blind screen
+    passes everything and accepts no more than the plain walk."""
+    rates = load_script("probe_delayed_acceptance").rates
+    rng = np.random.default_rng(0)
+    full, prior = rng.normal(-1.0, 2.0, 10_000), np.zeros(10_000)
+    perfect = rates(full, full, prior, 1.0, 0.25)
+    assert perfect["delayed"] == pytest.approx(perfect["plain"])
+    assert perfect["screen"] == pytest.approx(perfect["plain"])
+    assert perfect["gain"] == pytest.approx(1.0 / (0.25 + perfect["plain"]))
+    blind = rates(full, np.zeros(10_000), prior, 1.0, 0.25)
+    assert blind["screen"] == 1.0 and blind["delayed"] <= blind["plain"] + 1e-12 and blind["gain"] < 1.0
