@@ -16,7 +16,7 @@ how well the coarse likelihood ranks proposals near the posterior, which this pr
 
 For each train image it runs the default SMC (one round), takes the leading hypothesis's final
 particles, proposes the walk's Gaussian steps (the particles' covariance over position, yaw and
-size, times 2.38^2 / d and a scale tuned so that the plain walk accepts about 25% at lambda = 1),
+size, times 2.38^2 / d and a scale halved until the plain walk accepts at least 20%),
 scores every proposal under both likelihoods, and prints per image and lambda: the plain walk's
 acceptance; the screen's pass rate; delayed acceptance's acceptance; and its accepted moves per
 full-window render equivalent against the plain walk's (> 1: it would save renders). At lambda < 1

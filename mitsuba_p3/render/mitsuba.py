@@ -297,21 +297,17 @@ class MitsubaRenderer(Renderer):
         length = dr.norm(direction)
         return origin + mi.Vector3f(slot, 0.0, 0.0), direction / length, length
 
-    def _trace_object(self, frame, origin_w, direction_w, max_t=None, test_only=False, active=True):
-        """Intersect world rays with the object. Returns world distance and normal (or occlusion)."""
+    def _trace_object(self, frame, origin_w, direction_w):
+        """Intersect world rays with the object. Returns (hit, world distance, world normal)."""
         origin, direction, length = self._to_object(frame, origin_w, direction_w)
         slot = frame[4]
         t_in, t_out = _box_interval(origin - mi.Vector3f(slot, 0.0, 0.0), direction)
         # Rays from outside start just before the box (so far-away slots are never reached);
-        # rays from inside (shadow rays) start at their origin.
+        # rays from inside start at their origin.
         start = dr.select(t_in > 0, t_in - _ENTRY_BACKOFF, 0.0)
         reach = t_out - start + _ENTRY_BACKOFF
-        if max_t is not None:
-            reach = dr.minimum(reach, max_t * length - start)
-        active = active & (t_out >= dr.maximum(t_in, 0.0)) & (reach > 0)
+        active = (t_out >= dr.maximum(t_in, 0.0)) & (reach > 0)
         ray = mi.Ray3f(origin + direction * start, direction, dr.maximum(reach, 0.0))
-        if test_only:
-            return self._objects.ray_test(ray, coherent=False, active=active)
         si = self._objects.ray_intersect(ray, ray_flags=mi.RayFlags.Minimal | mi.RayFlags.ShadingFrame,
                                          coherent=True, active=active)
         cos_t, sin_t, _, scale, _ = frame
@@ -321,9 +317,10 @@ class MitsubaRenderer(Renderer):
     def _occluded(self, frame, origin_w, direction_w, max_t, active=True):
         """Whether shadow rays (unit world ``direction_w``) meet the object within ``max_t``: the
         canonical shapes' occlusion in closed form, Dr.Jit arithmetic inside the render's kernel.
-        It gives the answer of Mitsuba's scene (``_trace_object``, the reference in
-        tests/test_render.py) without a ray-tracing call out of the kernel per light, which cost
-        more than all the rest of a shadowed render (docs/notebook.md, "Shadow rays in closed form")."""
+        It gives the answer of Mitsuba's scene (the first hit of :meth:`_trace_object`, if within
+        ``max_t``: the reference in tests/test_render.py) without a ray-tracing call out of the
+        kernel per light, which cost more than all the rest of a shadowed render
+        (docs/notebook.md, "Shadow rays in closed form")."""
         origin, direction, length = self._to_object(frame, origin_w, direction_w)
         slot = frame[4]
         origin = origin - mi.Vector3f(slot, 0.0, 0.0)
