@@ -387,3 +387,18 @@ def test_the_delayed_acceptance_probe_counts_a_perfect_and_a_blind_screen():
     assert perfect["gain"] == pytest.approx(1.0 / (0.25 + perfect["plain"]))
     blind = rates(full, np.zeros(10_000), prior, 1.0, 0.25)
     assert blind["screen"] == 1.0 and blind["delayed"] <= blind["plain"] + 1e-12 and blind["gain"] < 1.0
+
+
+def test_the_sbc_bias_probe_finds_the_class_whose_ranks_lean():
+    """experiments/probe_sbc_bias.py's per-class table: uniform ranks pass, ranks piled at the top of
+    one class fail its KS test and show in its mean rank and its share outside all draws."""
+    table = load_script("probe_sbc_bias").class_table
+    rng = np.random.default_rng(1)
+    classes = np.repeat([0, 1], 300)
+    ranks = rng.integers(0, 100, (600, 2))
+    ranks[classes == 1, 0] = rng.integers(70, 100, 300)
+    fair, leaning = table(ranks, classes, 99)
+    assert fair["count"] == leaning["count"] == 300
+    assert fair["ks_p"].min() > 1e-3 and abs(fair["mean_rank"][0] - 49.5) < 6
+    assert leaning["ks_p"][0] < 1e-6 and leaning["mean_rank"][0] > 80 and leaning["ks_p"][1] > 1e-3
+    assert leaning["outside"][0] > fair["outside"][0]

@@ -1,0 +1,71 @@
+"""What does an SBC run's rank bias follow? Ranks against the simulations' true values, and per class.
+
+An SBC cache (``mitsuba-p3 sbc ... --out DIR``'s ``DIR/cache.npz``) keeps each simulation's ranks, shape
+probabilities and true class, not its true coordinates. Every simulation is seeded by (seed, i)
+(:func:`mitsuba_p3.evaluate.sbc.run_sbc`), so its scene is drawn again here from the same stream, without
+a sampler; the true class must match the cache's, a check that the model and seed are the run's. For each
+checked coordinate it prints the mean rank (uniform: L / 2), the Spearman correlation of its rank with
+every true coordinate and the yaw (modulo a quarter turn), and per shape class the mean rank, the rank
+KS p-value and the share of simulations whose truth lies outside all draws.
+
+    python experiments/probe_sbc_bias.py results/sbc-rounds2 --model data/models/fsclvr-fields3 --noise fields
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+
+def class_table(ranks: np.ndarray, classes: np.ndarray, draws: int) -> list[dict]:
+    """Per class of ``classes`` (n,): its count, and per column of ``ranks`` (n, d) the mean rank, the
+    KS p-value of the ranks' uniformity and the share of ranks at 0 or ``draws``."""
+    from mitsuba_p3.evaluate.sbc import ks_uniformity
+
+    rows = []
+    for cls in np.unique(classes):
+        mine = ranks[classes == cls]
+        rows.append({"class": int(cls), "count": int(len(mine)), "mean_rank": mine.mean(axis=0),
+                     "ks_p": ks_uniformity(mine, draws), "outside": ((mine == 0) | (mine == draws)).mean(axis=0)})
+    return rows
+
+
+def main() -> None:
+    from scipy.stats import spearmanr
+
+    from mitsuba_p3.evaluate.sbc import CHECKED, _simulate, checked_values, model_core
+    from mitsuba_p3.shapes import SHAPES
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("folder", type=Path, help="an SBC output folder with cache.npz")
+    parser.add_argument("--model", required=True, help="the fitted model the run simulated from")
+    parser.add_argument("--noise", default="fitted")
+    parser.add_argument("--coordinates", default="shift_x,shift_y")
+    args = parser.parse_args()
+    with np.load(args.folder / "cache.npz") as cache:
+        ranks, classes = cache["ranks"], cache["truths"]
+        draws, seed = int(cache["draws"]), int(cache["seed"])
+    core = model_core(args.model, "mitsuba", (120, 160), args.noise)
+    truths = []
+    for i in range(len(ranks)):
+        _, x, cls, _, _ = _simulate(core, np.random.default_rng([seed, i]))
+        if cls != classes[i]:
+            raise SystemExit(f"simulation {i}: class {cls} drawn, the cache has {classes[i]}: another model or seed")
+        truths.append(np.concatenate([checked_values(x), [float(x["theta"]) % (np.pi / 2)]]))
+    truths = np.array(truths)
+    names = list(CHECKED) + ["yaw mod 90"]
+    table = class_table(ranks, classes, draws)
+    for name in args.coordinates.split(","):
+        j = CHECKED.index(name)
+        print(f"{name}: mean rank {ranks[:, j].mean():.1f} (uniform {draws / 2:.1f}), {len(ranks)} simulations")
+        for k, other in enumerate(names):
+            rho, p = spearmanr(truths[:, k], ranks[:, j])
+            print(f"    rank vs true {other}: Spearman {rho:+.3f} (p {p:.3g})")
+        for row in table:
+            print(f"    {SHAPES[row['class']]} ({row['count']}): mean rank {row['mean_rank'][j]:.1f}, KS p "
+                  f"{row['ks_p'][j]:.3g}, truth outside all draws {row['outside'][j]:.1%}")
+
+
+if __name__ == "__main__":
+    main()
