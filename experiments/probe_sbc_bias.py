@@ -6,7 +6,10 @@ probabilities and true class, not its true coordinates. Every simulation is seed
 a sampler; the true class must match the cache's, a check that the model and seed are the run's. For each
 checked coordinate it prints the mean rank (uniform: L / 2), the Spearman correlation of its rank with
 every true coordinate and the yaw (modulo a quarter turn), and per shape class the mean rank, the rank
-KS p-value and the share of simulations whose truth lies outside all draws.
+KS p-value and the share of simulations whose truth lies outside all draws. With ``--masks``, per class
+also how many scenes' object pixels differ between the JAX tracer's silhouette (on which SBC draws the
+shading fields) and Mitsuba's render (whose pixels inference takes), and the first coordinate's mean rank
+with and without a difference.
 
     python experiments/probe_sbc_bias.py results/sbc-rounds2 --model data/models/fsclvr-fields3 --noise fields
 """
@@ -42,17 +45,26 @@ def main() -> None:
     parser.add_argument("--model", required=True, help="the fitted model the run simulated from")
     parser.add_argument("--noise", default="fitted")
     parser.add_argument("--coordinates", default="shift_x,shift_y")
+    parser.add_argument("--masks", action="store_true", help="compare the tracer's and the render's object pixels")
     args = parser.parse_args()
     with np.load(args.folder / "cache.npz") as cache:
         ranks, classes = cache["ranks"], cache["truths"]
         draws, seed = int(cache["draws"]), int(cache["seed"])
     core = model_core(args.model, "mitsuba", (120, 160), args.noise)
-    truths = []
+    truths, differ = [], []
     for i in range(len(ranks)):
-        _, x, cls, _, _ = _simulate(core, np.random.default_rng([seed, i]))
+        image, x, cls, z, _ = _simulate(core, np.random.default_rng([seed, i]))
         if cls != classes[i]:
             raise SystemExit(f"simulation {i}: class {cls} drawn, the cache has {classes[i]}: another model or seed")
         truths.append(np.concatenate([checked_values(x), [float(x["theta"]) % (np.pi / 2)]]))
+        if args.masks:
+            import jax.numpy as jnp
+
+            from mitsuba_p3.space import render_params
+
+            traced = np.asarray(core.objects(jnp.asarray(z), core.observe(image))).reshape(image.shape[:2])
+            _, rendered = core.renderer.render({k: np.asarray(v) for k, v in render_params(x).items()}, objects=True)
+            differ.append(int((traced != rendered).sum()))
     truths = np.array(truths)
     names = list(CHECKED) + ["yaw mod 90"]
     table = class_table(ranks, classes, draws)
@@ -65,6 +77,14 @@ def main() -> None:
         for row in table:
             print(f"    {SHAPES[row['class']]} ({row['count']}): mean rank {row['mean_rank'][j]:.1f}, KS p "
                   f"{row['ks_p'][j]:.3g}, truth outside all draws {row['outside'][j]:.1%}")
+    if args.masks:
+        j, differ = CHECKED.index(args.coordinates.split(",")[0]), np.array(differ)
+        for cls in np.unique(classes):
+            mine = classes == cls
+            some, none = mine & (differ > 0), mine & (differ == 0)
+            print(f"{SHAPES[cls]}: object pixels differ in {some.sum()} of {mine.sum()} scenes ({differ[mine].sum()} "
+                  f"pixels); mean {CHECKED[j]} rank {ranks[some, j].mean() if some.any() else float('nan'):.1f} "
+                  f"with, {ranks[none, j].mean() if none.any() else float('nan'):.1f} without")
 
 
 if __name__ == "__main__":
