@@ -72,6 +72,11 @@ def main() -> None:
     config = SMCConfig(rounds=1)
     mask = jnp.asarray(WALK_MASK)
     lambdas = [float(v) for v in args.lambdas.split(",")]
+    log_prior = hypothesis_log_prior(core.prior, hypotheses_of(core.prior, False))
+    # compiled once: the observation and the row are arguments, not constants of each image's program
+    full_ll = jax.jit(lambda zs, obs: jax.vmap(lambda p: core.log_likelihood(p, obs))(zs))
+    prior_of = jax.jit(lambda zs, row: jax.vmap(lambda p: log_prior(p, row))(zs))
+    coarse_lls = {}
     for shot in chosen:
         image = dataset.image(shot)
         window = core.window_for(image, tuple(config.window))
@@ -82,16 +87,15 @@ def main() -> None:
         best = int(np.argmax(rows.log_evidence))
         row = int(rows.index[best])
         z = jnp.asarray(rows.state.position[best])                      # (N, d) at lambda = 1
-        log_prior = hypothesis_log_prior(core.prior, hypotheses_of(core.prior, False))
-        full_ll = jax.jit(jax.vmap(lambda p: core.log_likelihood(p, observation)))
-        coarse_ll = jax.jit(jax.vmap(lambda p: coarse.log_likelihood(p, coarse_obs)))
-        prior_of = jax.jit(jax.vmap(lambda p: log_prior(p, row)))
+        if coarse not in coarse_lls:
+            coarse_lls[coarse] = jax.jit(lambda zs, obs, c=coarse: jax.vmap(lambda p: c.log_likelihood(p, obs))(zs))
+        coarse_ll = coarse_lls[coarse]
         centred = (z - z.mean(0)) * mask
         dims = int(WALK_MASK.sum())
         cov = centred.T @ centred / (len(z) - 1) + jnp.diag(1e-8 + (1.0 - mask))
         tril = jnp.linalg.cholesky(cov) * (2.38 / np.sqrt(dims))
         key = jax.random.PRNGKey(0)
-        base_full, base_coarse, base_prior = full_ll(z), coarse_ll(z), prior_of(z)
+        base_full, base_coarse, base_prior = full_ll(z, observation), coarse_ll(z, coarse_obs), prior_of(z, row)
         for lam in lambdas:
             # the walk's scale for this lambda: halve until the plain walk accepts at least 20%
             scale, found = 1.0, None
@@ -99,9 +103,9 @@ def main() -> None:
                 key, sub = jax.random.split(key)
                 steps = jax.random.normal(sub, (args.proposals,) + z.shape) * mask
                 proposed = (z[None] + scale * jnp.einsum("ij,pnj->pni", tril, steps)).reshape(-1, z.shape[-1])
-                full = np.asarray(full_ll(proposed)).reshape(args.proposals, -1) - np.asarray(base_full)
-                cheap = np.asarray(coarse_ll(proposed)).reshape(args.proposals, -1) - np.asarray(base_coarse)
-                prior = np.asarray(prior_of(proposed)).reshape(args.proposals, -1) - np.asarray(base_prior)
+                full = np.asarray(full_ll(proposed, observation)).reshape(args.proposals, -1) - np.asarray(base_full)
+                cheap = np.asarray(coarse_ll(proposed, coarse_obs)).reshape(args.proposals, -1) - np.asarray(base_coarse)
+                prior = np.asarray(prior_of(proposed, row)).reshape(args.proposals, -1) - np.asarray(base_prior)
                 found = rates(np.nan_to_num(full, nan=-np.inf), np.nan_to_num(cheap, nan=-np.inf),
                               np.nan_to_num(prior, nan=-np.inf), lam, 0.25)
                 if found["plain"] >= 0.2:

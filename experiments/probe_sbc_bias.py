@@ -35,10 +35,12 @@ def class_table(ranks: np.ndarray, classes: np.ndarray, draws: int) -> list[dict
 
 
 def main() -> None:
+    import jax.numpy as jnp
     from scipy.stats import spearmanr
 
     from mitsuba_p3.evaluate.sbc import CHECKED, _simulate, checked_values, model_core
     from mitsuba_p3.shapes import SHAPES
+    from mitsuba_p3.space import render_params
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("folder", type=Path, help="an SBC output folder with cache.npz")
@@ -58,10 +60,6 @@ def main() -> None:
             raise SystemExit(f"simulation {i}: class {cls} drawn, the cache has {classes[i]}: another model or seed")
         truths.append(np.concatenate([checked_values(x), [float(x["theta"]) % (np.pi / 2)]]))
         if args.masks:
-            import jax.numpy as jnp
-
-            from mitsuba_p3.space import render_params
-
             traced = np.asarray(core.objects(jnp.asarray(z), core.observe(image))).reshape(image.shape[:2])
             _, rendered = core.renderer.render({k: np.asarray(v) for k, v in render_params(x).items()}, objects=True)
             differ.append(int((traced != rendered).sum()))
