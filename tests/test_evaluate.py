@@ -160,6 +160,31 @@ def test_parallel_workers_share_the_cores(bench, tmp_path):
             assert int(f["render_threads"]) == worker_threads(2)
 
 
+_HELD = []
+
+
+def _hold_and_name(megabytes: int, fail: bool = False) -> int:
+    """A worker's job: keep ``megabytes`` more memory alive, then name its process (or fail). Each takes
+    over a second, as loky checks a worker's memory at most once a second."""
+    time.sleep(1.1)
+    if fail:
+        raise ValueError("this job fails")
+    _HELD.append(np.ones(megabytes << 17))              # 8-byte floats: megabytes MB, touched
+    return os.getpid()
+
+
+def test_workers_live_for_the_whole_run():
+    """A worker whose memory grows by more than 300 MB after its first job (as a posterior worker's does
+    when JAX compiles its later programs) keeps its process: loky's executor replaced it, and the new
+    process compiled everything again. An error in a job reaches the caller."""
+    from mitsuba_p3.evaluate.jobs import in_workers
+
+    pids = list(in_workers(_hold_and_name, [(8,), (200,), (200,), (200,)], workers=1))
+    assert len(set(pids)) == 1 and pids[0] != os.getpid()
+    with pytest.raises(ValueError, match="this job fails"):
+        list(in_workers(_hold_and_name, [(1,), (1, True), (1,)], workers=2))
+
+
 def test_run_folder_refuses_other_settings(bench, tmp_path):
     config = EvaluationConfig(likelihoods=("p3",), sampler=TINY, episodes=2)
     dataset = load_dataset(bench / "data")

@@ -206,7 +206,7 @@ def evaluate(
     out: Path = typer.Option(..., "--out", help="Run folder: cached posteriors and tables (resumes)."),
     likelihoods: str = typer.Option("p3,np3", help="Comma-separated: p3, np3."),
     episodes: int = typer.Option(100, help="Episodes per N-way K-shot setting."),
-    jobs: int = typer.Option(1, help="Parallel posterior jobs (joblib)."),
+    jobs: int = typer.Option(1, help="Parallel posterior workers (processes that live for the whole run)."),
     dask: Optional[str] = typer.Option(None, "--dask", help="Dask scheduler address: run the jobs there."),
     chains: int = sampler_option("chains", SamplerConfig),
     steps: int = sampler_option("steps", SamplerConfig),

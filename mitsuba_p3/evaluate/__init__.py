@@ -8,8 +8,9 @@
    and the diagnostics. Files are written atomically (temporary file, then
    rename), so a run killed at any moment resumes without recomputing finished
    images. ``RUN/run.json`` records the settings; a run folder refuses other
-   settings. The per-image jobs run in parallel with joblib, or on a Dask
-   cluster (joblib's Dask backend) when a scheduler address is given.
+   settings. The per-image jobs run in parallel in worker processes that live
+   for the whole run, or on a Dask cluster (joblib's Dask backend) when a
+   scheduler address is given.
 2. **Classification.** For every N-way K-shot setting, the same seeded episodes
    as every other model (:func:`mitsuba_p3.benchmarks.episodes.sample_episodes`);
    each class program merges its K support programs, each query is classified by

@@ -30,7 +30,7 @@ class EvaluationConfig:
     episode_seed: int = 0
     keep_draws: int = 2000       # posterior draws kept per image for its protoprogram
     distance: DistanceConfig = field(default_factory=DistanceConfig)
-    jobs: int = 1                # joblib workers
+    jobs: int = 1                # worker processes (:func:`~mitsuba_p3.evaluate.jobs.in_workers`)
     dask: str | None = None      # a Dask scheduler address: run the per-image jobs there
 
     def __post_init__(self):

@@ -1,4 +1,4 @@
-"""Per-image posterior jobs and their cache: run in parallel (joblib or Dask), resumable after a kill.
+"""Per-image posterior jobs and their cache: run in parallel (worker processes or Dask), resumable after a kill.
 
 Every test image's posterior is sampled once per likelihood and cached as
 ``RUN/posteriors/LIKELIHOOD/INDEX.npz``: the property samples a protoprogram
@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import os
 import time
-from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -98,7 +97,7 @@ def _render_threads() -> int:
 def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str, config: EvaluationConfig,
                   out: str, threads: int | None = None) -> str:
     """Sample one image's posterior and cache what evaluation needs (a picklable job)."""
-    if threads:                    # a joblib worker process of this machine
+    if threads:                    # a worker process of this machine (:func:`in_workers`)
         _exit_with_parent()
         _limit_threads(threads)
     from ..fit.model import FittedModel
@@ -427,9 +426,7 @@ def compute_posteriors(dataset: Dataset, model_dir: Path, run_dir: Path, config:
                        progress: Callable[[int, int], None] | None = None,
                        shots: list[int] | None = None) -> None:
     """Sample every missing test posterior (or those of ``shots``, indices into ``dataset.shots``)
-    with joblib, or on Dask when ``config.dask`` is set."""
-    from joblib import Parallel, delayed, parallel_config
-
+    in ``config.jobs`` worker processes (:func:`in_workers`), or on Dask when ``config.dask`` is set."""
     tests = dataset.split("test") if shots is None else [dataset.shots[i] for i in shots]
     digests = {shot.index: image_digest(shot) for shot in tests}
     todo = [(shot.index, likelihood) for likelihood in config.likelihoods for shot in tests
@@ -441,16 +438,50 @@ def compute_posteriors(dataset: Dataset, model_dir: Path, run_dir: Path, config:
     if not todo:
         return
     threads = None if config.dask else worker_threads(config.jobs)
-    jobs = (delayed(posterior_job)(str(dataset.root), str(model_dir), index, likelihood, config,
-                                   str(posterior_path(run_dir, likelihood, index)), threads)
-            for index, likelihood in todo)
-    with ExitStack() as stack:
-        if config.dask:
-            from dask.distributed import Client
+    calls = [(str(dataset.root), str(model_dir), index, likelihood, config,
+              str(posterior_path(run_dir, likelihood, index)), threads) for index, likelihood in todo]
+    if config.dask:
+        finished = _on_dask(config.dask, posterior_job, calls)
+    elif config.jobs > 1:
+        finished = in_workers(posterior_job, calls, config.jobs)
+    else:
+        finished = (posterior_job(*call) for call in calls)
+    for _ in finished:
+        done += 1
+        if progress:
+            progress(done, total)
 
-            stack.enter_context(Client(config.dask))
-            stack.enter_context(parallel_config(backend="dask"))
-        for _ in Parallel(n_jobs=None if config.dask else config.jobs, return_as="generator_unordered")(jobs):
-            done += 1
-            if progress:
-                progress(done, total)
+
+def _on_dask(address: str, function: Callable, calls: list[tuple]):
+    """Yield ``function(*call)`` for each of ``calls``, as they finish, computed on the Dask cluster
+    whose scheduler is at ``address`` (joblib's Dask backend)."""
+    from dask.distributed import Client
+    from joblib import Parallel, delayed, parallel_config
+
+    with Client(address), parallel_config(backend="dask"):
+        yield from Parallel(n_jobs=None, return_as="generator_unordered")(delayed(function)(*call) for call in calls)
+
+
+def in_workers(function: Callable, calls: list[tuple], workers: int):
+    """Yield ``function(*call)`` for each of ``calls``, as they finish, computed by ``workers`` processes
+    that live for the whole run; an error in one call stops the others and is raised here.
+
+    Not joblib's loky executor: it replaces a worker whose memory grew by 300 MB after its first job,
+    and a posterior worker's grows that much as JAX compiles the programs of the hypotheses and rounds
+    its first image did not need, so each replacement compiled everything again (in the first 20
+    posteriors of fsclvr's test split, 4 took 112-159 s against 36-57 s for the rest). Spawned, not forked: the parent may
+    already run JAX's and Dr.Jit's threads, which a fork does not copy."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    executor = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+    try:
+        futures = [executor.submit(function, *call) for call in calls]
+        for future in as_completed(futures):
+            yield future.result()
+    except BaseException:          # an error, Ctrl-C or an abandoned generator: no worker may keep computing
+        for process in list((getattr(executor, "_processes", None) or {}).values()):  # public only from 3.14
+            process.terminate()
+        raise
+    finally:
+        executor.shutdown(wait=True, cancel_futures=True)
