@@ -12,6 +12,15 @@ shading fields) and Mitsuba's render (whose pixels inference takes), and the fir
 with and without a difference.
 
     python experiments/probe_sbc_bias.py results/sbc-rounds2 --model data/models/fsclvr-fields3 --noise fields
+
+With ``--rerun CLASS``, the simulations of that class are sampled again, each exactly as the SBC run did
+(:func:`mitsuba_p3.evaluate.sbc.run_sbc`'s seeds, the same scene, fields and draws), under the sampler
+settings ``--set`` changes (e.g. ``smc.footprint=false``), and their ranks printed beside the run's. The
+reruns are cached in ``--out`` (resumable); ``--part K/M`` samples every M-th of them, starting at the K-th,
+so M processes can share the cores, and a run without ``--part`` reads every part's cache:
+
+    python experiments/probe_sbc_bias.py results/sbc-rounds2 --model data/models/fsclvr-fields3 --noise fields \
+        --rerun sphere --set smc.footprint=false --out out/sbc-spheres-nofootprint --part 0/2
 """
 from __future__ import annotations
 
@@ -34,11 +43,41 @@ def class_table(ranks: np.ndarray, classes: np.ndarray, draws: int) -> list[dict
     return rows
 
 
+def rerun(core, config, simulations: list[int], seed: int, draws: int, cache: Path) -> dict[int, np.ndarray]:
+    """Ranks (8,) of each of ``simulations`` (indices of an SBC run with ``seed`` and ``draws``) sampled
+    again under ``config``, each simulated and ranked with the run's own random stream; cached in
+    ``cache`` (an .npz of indices and ranks) after every simulation, so a killed rerun resumes."""
+    import jax.numpy as jnp
+
+    from mitsuba_p3.evaluate.sbc import checked_values, rank_of, simulate_scored, smc_sampler
+    from mitsuba_p3.files import atomic_npz
+
+    done: dict[int, np.ndarray] = {}
+    if cache.exists():
+        with np.load(cache) as f:
+            done = dict(zip(f["indices"].tolist(), f["ranks"]))
+    sample = smc_sampler(core, config)
+    for i in simulations:
+        if i in done:
+            continue
+        rng = np.random.default_rng([seed, i])             # as run_sbc draws simulation i
+        image, truth, _, where = simulate_scored(core, rng, config.window)
+        seed_i = int(rng.integers(2 ** 31))
+        positions, _ = (sample(core.observe(image), seed_i) if where is None else
+                        sample(core.observe(image), seed_i, where))
+        chosen = positions[rng.choice(len(positions), size=draws, replace=len(positions) < draws)]
+        values = checked_values({k: np.asarray(v) for k, v in core.prior.constrain(jnp.asarray(chosen)).items()})
+        done[i] = rank_of(checked_values(truth), values, rng)
+        atomic_npz(cache, indices=np.array(list(done)), ranks=np.array(list(done.values())))
+        print(f"simulation {i}: ranks {done[i].tolist()} ({len(done)} done)", flush=True)
+    return done
+
+
 def main() -> None:
     import jax.numpy as jnp
     from scipy.stats import spearmanr
 
-    from mitsuba_p3.evaluate.sbc import CHECKED, _simulate, checked_values, model_core
+    from mitsuba_p3.evaluate.sbc import CHECKED, _simulate, checked_values, ks_uniformity, model_core
     from mitsuba_p3.shapes import SHAPES
     from mitsuba_p3.space import render_params
 
@@ -48,6 +87,10 @@ def main() -> None:
     parser.add_argument("--noise", default="fitted")
     parser.add_argument("--coordinates", default="shift_x,shift_y")
     parser.add_argument("--masks", action="store_true", help="compare the tracer's and the render's object pixels")
+    parser.add_argument("--rerun", choices=SHAPES, help="sample this class's simulations again (--set)")
+    parser.add_argument("--set", action="append", default=[], help="a sampler setting for --rerun: smc.FIELD=VALUE")
+    parser.add_argument("--out", type=Path, help="--rerun's cache folder")
+    parser.add_argument("--part", default="0/1", help="--rerun: K/M, every M-th simulation from the K-th")
     args = parser.parse_args()
     with np.load(args.folder / "cache.npz") as cache:
         ranks, classes = cache["ranks"], cache["truths"]
@@ -75,6 +118,32 @@ def main() -> None:
         for row in table:
             print(f"    {SHAPES[row['class']]} ({row['count']}): mean rank {row['mean_rank'][j]:.1f}, KS p "
                   f"{row['ks_p'][j]:.3g}, truth outside all draws {row['outside'][j]:.1%}")
+    if args.rerun:
+        from mitsuba_p3.cli.settings import apply_settings
+        from mitsuba_p3.infer.smc import SMCConfig
+
+        if args.out is None:
+            raise SystemExit("--rerun needs --out")
+        args.out.mkdir(parents=True, exist_ok=True)
+        part, parts = (int(v) for v in args.part.split("/"))
+        mine = [int(i) for i in np.flatnonzero(classes == SHAPES.index(args.rerun))]
+        config = apply_settings(SMCConfig(), args.set)
+        if parts > 1:
+            rerun(core, config, mine[part::parts], seed, draws, args.out / f"part{part}of{parts}.npz")
+            return
+        again: dict = {}
+        for cache in sorted(args.out.glob("part*.npz")) + sorted(args.out.glob("all.npz")):
+            with np.load(cache) as f:
+                again.update(zip(f["indices"].tolist(), f["ranks"]))
+        missing = [i for i in mine if i not in again]
+        if missing:
+            again.update(rerun(core, config, missing, seed, draws, args.out / "all.npz"))
+        both = np.array(mine)
+        before, after = ranks[both], np.array([again[i] for i in mine])
+        print(f"{args.rerun}, {len(mine)} simulations, under {' '.join(args.set) or 'the default'} against the run:")
+        for j, name in enumerate(CHECKED):
+            print(f"    {name}: mean rank {after[:, j].mean():.1f} (run {before[:, j].mean():.1f}; uniform "
+                  f"{draws / 2:.1f}), KS p {ks_uniformity(after, draws)[j]:.3g} (run {ks_uniformity(before, draws)[j]:.3g})")
     if args.masks:
         j, differ = CHECKED.index(args.coordinates.split(",")[0]), np.array(differ)
         for cls in np.unique(classes):
