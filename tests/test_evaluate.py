@@ -24,6 +24,10 @@ from mitsuba_p3.infer.mcmc import SamplerConfig
 RES = (30, 40)
 TINY = SamplerConfig(chains=4, steps=30, burn_in=10, tune_rounds=2, tune_steps=20, block=10, init_candidates=32)
 SAMPLER_FLAGS = ["--chains", "4", "--steps", "30", "--burn-in", "10", "--tune-rounds", "2", "--tune-steps", "20"]
+# a small SMC for the CLI's runs (the default's posterior takes 40-120 s even at 30x40): what they test is the run
+# folder, not the sampler
+SMC_FLAGS = ["--particles", "4", "--set", "smc.mcmc_steps=1", "--set", "smc.final_steps=1", "--set", "smc.islands=1",
+             "--set", "smc.rounds=1"]
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +47,8 @@ def bench(tmp_path_factory):
 def test_evaluate_resumes_after_kill_and_writes_tables(bench, tmp_path):
     run = tmp_path / "run"
     command = [sys.executable, "-m", "mitsuba_p3.cli", "evaluate", str(bench / "data"), "--model",
-               str(bench / "model"), "--out", str(run), "--likelihoods", "p3", "--episodes", "20", *SAMPLER_FLAGS]
+               str(bench / "model"), "--out", str(run), "--likelihoods", "p3", "--episodes", "20", *SAMPLER_FLAGS,
+               *SMC_FLAGS]
     first = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     folder = run / "posteriors" / "p3"
     deadline = time.time() + 600

@@ -469,8 +469,8 @@ def in_workers(function: Callable, calls: list[tuple], workers: int):
     Not joblib's loky executor: it replaces a worker whose memory grew by 300 MB after its first job,
     and a posterior worker's grows that much as JAX compiles the programs of the hypotheses and rounds
     its first image did not need, so each replacement compiled everything again (in the first 20
-    posteriors of fsclvr's test split, 4 took 112-159 s against 36-57 s for the rest). Spawned, not forked: the parent may
-    already run JAX's and Dr.Jit's threads, which a fork does not copy."""
+    posteriors of fsclvr's test split, 4 took 112-159 s against 36-57 s for the rest). Spawned, not
+    forked: the parent may already run JAX's and Dr.Jit's threads, which a fork does not copy."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
