@@ -47,9 +47,7 @@ def rerun(core, config, simulations: list[int], seed: int, draws: int, cache: Pa
     """Ranks (8,) of each of ``simulations`` (indices of an SBC run with ``seed`` and ``draws``) sampled
     again under ``config``, each simulated and ranked with the run's own random stream; cached in
     ``cache`` (an .npz of indices and ranks) after every simulation, so a killed rerun resumes."""
-    import jax.numpy as jnp
-
-    from mitsuba_p3.evaluate.sbc import checked_values, rank_of, simulate_scored, smc_sampler
+    from mitsuba_p3.evaluate.sbc import simulate_and_rank, smc_sampler
     from mitsuba_p3.files import atomic_npz
 
     done: dict[int, np.ndarray] = {}
@@ -60,14 +58,7 @@ def rerun(core, config, simulations: list[int], seed: int, draws: int, cache: Pa
     for i in simulations:
         if i in done:
             continue
-        rng = np.random.default_rng([seed, i])             # as run_sbc draws simulation i
-        image, truth, _, where = simulate_scored(core, rng, config.window)
-        seed_i = int(rng.integers(2 ** 31))
-        positions, _ = (sample(core.observe(image), seed_i) if where is None else
-                        sample(core.observe(image), seed_i, where))
-        chosen = positions[rng.choice(len(positions), size=draws, replace=len(positions) < draws)]
-        values = checked_values({k: np.asarray(v) for k, v in core.prior.constrain(jnp.asarray(chosen)).items()})
-        done[i] = rank_of(checked_values(truth), values, rng)
+        done[i] = simulate_and_rank(core, sample, seed, i, draws, config.window)[0]
         atomic_npz(cache, indices=np.array(list(done)), ranks=np.array(list(done.values())))
         print(f"simulation {i}: ranks {done[i].tolist()} ({len(done)} done)", flush=True)
     return done

@@ -194,6 +194,22 @@ def simulate_scored(core, rng: np.random.Generator, window: tuple[int, int] | No
     return image, truth, cls, where
 
 
+def simulate_and_rank(core, sample, seed: int, i: int, draws: int, window: tuple[int, int] | None = None):
+    """Simulation ``i`` of an SBC run seeded by ``seed``, sampled by ``sample`` and ranked: the truth's ranks
+    (8,) among ``draws`` posterior draws, the class probabilities and the true class. Everything random
+    comes from the stream (``seed``, i), so a simulation can be drawn and sampled again on its own."""
+    import jax.numpy as jnp
+
+    rng = np.random.default_rng([seed, i])
+    image, truth, cls, where = simulate_scored(core, rng, window)
+    seed_i = int(rng.integers(2 ** 31))
+    positions, class_probabilities = (sample(core.observe(image), seed_i) if where is None else
+                                      sample(core.observe(image), seed_i, where))
+    chosen = positions[rng.choice(len(positions), size=draws, replace=len(positions) < draws)]
+    values = checked_values({k: np.asarray(v) for k, v in core.prior.constrain(jnp.asarray(chosen)).items()})
+    return rank_of(checked_values(truth), values, rng), class_probabilities, cls
+
+
 def run_sbc(core, sample, images: int, draws: int, seed: int = 0, cache=None, progress=None,
             tag: str = "{}", window: tuple[int, int] | None = None) -> SBCResult:
     """SBC of ``sample(observation, seed) -> (positions (L', 15), class probabilities)`` on ``images``
@@ -204,8 +220,6 @@ def run_sbc(core, sample, images: int, draws: int, seed: int = 0, cache=None, pr
     again with the same ``cache`` (an .npz path, rewritten atomically after every image) resumes where
     it stopped and gives the same result. ``tag`` names the sampler's settings; a cache made under other
     settings is refused rather than continued."""
-    import jax.numpy as jnp
-
     from ..errors import ConfigError
     from ..files import atomic_npz
 
@@ -221,14 +235,8 @@ def run_sbc(core, sample, images: int, draws: int, seed: int = 0, cache=None, pr
             if int(f["draws"]) == draws and int(f["seed"]) == seed:
                 done = {k: list(f[k]) for k in done}
     for i in range(len(done["ranks"]), images):
-        rng = np.random.default_rng([seed, i])
-        image, truth, cls, where = simulate_scored(core, rng, window)
-        seed_i = int(rng.integers(2 ** 31))
-        positions, class_probabilities = (sample(core.observe(image), seed_i) if where is None else
-                                          sample(core.observe(image), seed_i, where))
-        chosen = positions[rng.choice(len(positions), size=draws, replace=len(positions) < draws)]
-        values = checked_values({k: np.asarray(v) for k, v in core.prior.constrain(jnp.asarray(chosen)).items()})
-        done["ranks"].append(rank_of(checked_values(truth), values, rng))
+        ranks, class_probabilities, cls = simulate_and_rank(core, sample, seed, i, draws, window)
+        done["ranks"].append(ranks)
         done["probabilities"].append(np.asarray(class_probabilities, np.float64))
         done["truths"].append(cls)
         if cache is not None:
