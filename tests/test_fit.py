@@ -75,6 +75,23 @@ def test_fit_light_falloff_is_kept_in_the_fitted_world():
         SceneOptConfig(**TINY_FIT, light_falloff=-1.0)
 
 
+def test_white_lights_stay_achromatic_while_the_fit_moves_them(tiny_dataset):
+    """fit --light-colour white: each light one intensity in every channel, through Adam and the projection,
+    while the fit still moves it; free lights (the paper's) are RGB; an unknown option is refused."""
+    from mitsuba_p3.errors import ConfigError
+    from mitsuba_p3.fit.scene_opt import initial_globals
+
+    config = SceneOptConfig(**{**TINY_FIT, "epochs": 1}, light_colour="white")
+    start = initial_globals(config)["light_intensity"]
+    lights = optimise_scene(load_dataset(tiny_dataset, resolution=config.resolution), config).globals["light_intensity"]
+    assert np.array_equal(lights, np.repeat(lights[:, :1], 3, axis=1))
+    assert np.max(np.abs(lights - start)) > 1e-3
+    free = initial_globals(SceneOptConfig(**TINY_FIT))["light_intensity"]
+    assert np.ptp(free, axis=1).max() > 0.01
+    with pytest.raises(ConfigError, match="light colour"):
+        SceneOptConfig(**TINY_FIT, light_colour="warm")
+
+
 def test_reproduce_names_and_checks_the_falloff_of_its_models(tiny_model, tmp_path, monkeypatch):
     """reproduce --light-falloff D fits into data/models/V-falloffD (the paper's world keeps data/models/V) and
     refuses a model folder there that was fitted with another falloff, rather than evaluate in the wrong world."""
@@ -709,6 +726,20 @@ def test_material_refinement_recovers_a_visible_highlight():
     got = refined["blue-metal"]
     assert 15.0 <= got["shininess"] <= 64.0 and got["specular"] == pytest.approx(0.9, rel=0.25)
     assert np.sqrt(errors["blue-metal"] / images.size) < 0.005   # RMS per pixel and channel
+
+
+def test_reflectance_reads_a_sample_as_the_renderer_renders_it():
+    """A draw with a negative colour channel and a negative weight has the reflectance of the clipped draw
+    the renderer shows (a negative ambient must not cancel the diffuse, nor a negative red tint the hue)."""
+    from mitsuba_p3.fit.attributes import reflectance
+    from mitsuba_p3.space import render_params
+
+    draws = {"colour": np.array([[-0.4, 0.5, 1.3], [0.2, 0.3, 0.4]]), "ambient": np.array([[-0.3], [0.1]]),
+             "diffuse": np.array([[0.6], [-0.2]])}
+    shown = render_params({"class_probabilities": np.ones(3), "shift": np.zeros(2), "theta": 0.0, "scale": np.ones(3),
+                           "specular": 0.0, "shininess": 1.0, **{k: v[0] for k, v in draws.items()}}, np)
+    assert np.allclose(reflectance(draws), [[0.0, 0.3, 0.6], [0.02, 0.03, 0.04]])
+    assert np.allclose(reflectance(draws)[0], np.asarray(shown["colour"]) * (shown["ambient"] + shown["diffuse"]))
 
 
 def test_attribute_rules_name_a_dim_metal_by_its_hue_and_learn_the_material_kind():

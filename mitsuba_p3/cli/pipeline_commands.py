@@ -79,6 +79,8 @@ def fit(
                                                   "reference distance in metres (0.5: about the lights' distance "
                                                   "from the table), in the fit and every render of the model (0: "
                                                   "no falloff, the paper's)."),
+    light_colour: str = typer.Option("free", help="free: each light an RGB intensity (the paper's); white: "
+                                                  "achromatic lights, the light's tint left to the fitted colours."),
 ) -> None:
     """Training stage: scene optimisation, feature selection and priors -> a fitted-model folder."""
     from ..fit.model import fit_model
@@ -86,7 +88,7 @@ def fit(
 
     config = SceneOptConfig(epochs=epochs, material_passes=material_passes, global_passes=global_passes,
                             learning_rate=learning_rate, shadows=shadows, light_radius=light_radius,
-                            light_falloff=light_falloff, observation=observation)
+                            light_falloff=light_falloff, observation=observation, light_colour=light_colour)
     # one bar named by the stage; written to a file (a background fit's log) it prints plain lines
     bar, track_stage = phase_progress_bar("fit")
 

@@ -71,9 +71,13 @@ def saturation(rgb: np.ndarray) -> np.ndarray:
 
 
 def reflectance(material) -> np.ndarray:
-    """c (k_a + k_d): the colour the image identifies, (3,) for a material or (n, 3) for samples."""
-    colour = np.asarray(material["colour"], np.float64).reshape(-1, 3)
-    weight = (np.asarray(material["ambient"], np.float64) + np.asarray(material["diffuse"], np.float64)).reshape(-1, 1)
+    """c (k_a + k_d): the colour the image identifies, (3,) for a material or (n, 3) for samples.
+
+    Read as the renderer reads a sample (:func:`mitsuba_p3.space.render_params`): the colour clipped to
+    [0, 1], the weights to >= 0; a prior draw's negative channel or weight renders as zero, not below it."""
+    colour = np.clip(np.asarray(material["colour"], np.float64), 0.0, 1.0).reshape(-1, 3)
+    weight = (np.maximum(np.asarray(material["ambient"], np.float64), 0.0)
+              + np.maximum(np.asarray(material["diffuse"], np.float64), 0.0)).reshape(-1, 1)
     product = colour * weight
     return product[0] if np.ndim(material["colour"]) == 1 else product
 

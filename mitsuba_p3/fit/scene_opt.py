@@ -13,13 +13,19 @@ learning rate of 0.01 can move it between rubber (~4) and metal (~40) within
 the schedule; every other parameter is optimised directly and projected back
 to its valid range after each step.
 
-Four options beyond the paper, all off by default: ``observation="hemisphere"`` also fits the
+Five options beyond the paper, all off by default: ``observation="hemisphere"`` also fits the
 environment's sky and ground radiance with the globals (:mod:`mitsuba_p3.render.hemisphere`),
 ``observation="microfacet"`` gives every surface the GGX microfacet lobe in place of Phong's highlight
 (:mod:`mitsuba_p3.render.lobes`; the same parameters, so the rest of the pipeline is unchanged),
 ``light_radius`` widens every light into a disc for soft shadows (fixed, not fitted: visibility has
 no gradient; :mod:`mitsuba_p3.render.soft_shadows`), and ``light_falloff`` gives the lights the inverse-square
 falloff of physical lights (:mod:`mitsuba_p3.render.falloff`).
+
+``light_colour="white"`` holds every light achromatic (one intensity per light, the same in each
+channel). A light's colour multiplies every material's fitted colour, so the images identify it only
+through the white-weighted highlight and the floor; left free (the paper's, per channel) it can drift
+to a tint that the class colours then cancel, and a gray metal's highlight renders tinted. Held
+white, the benchmark's light tint goes into the fitted colours, where the colour posterior reads it.
 """
 from __future__ import annotations
 
@@ -40,6 +46,8 @@ GLOBAL_KEYS = ("light_position", "light_intensity", "floor_colour", "floor_ambie
 # the environment's two hemispheres, fitted with the globals under the hemisphere observation model
 HEMISPHERE_KEYS = ("sky", "ground")
 OBSERVATIONS = ("phong", "hemisphere", "microfacet")
+# free: each light an RGB intensity (the paper's); white: one intensity per light, the same in every channel
+LIGHT_COLOURS = ("free", "white")
 # where the sky and ground start (radiance, display units): a dim grey environment
 INITIAL_HEMISPHERE = 0.05
 
@@ -67,6 +75,7 @@ class SceneOptConfig:
     # phong: point lights and a constant ambient term (the paper's); hemisphere: also a fitted sky and ground
     # (render/hemisphere.py)
     observation: str = "phong"
+    light_colour: str = "free"   # LIGHT_COLOURS (module docstring)
     seed: int = 777
     init_material: dict = field(default_factory=lambda: {"ambient": 0.1, "diffuse": 0.9, "specular": 0.5,
                                                          "shininess": 4.0})
@@ -80,6 +89,8 @@ class SceneOptConfig:
         check_positive(self, ("learning_rate",), "fit ")
         if self.observation not in OBSERVATIONS:
             raise ConfigError(f"unknown observation model {self.observation!r}; choose {' or '.join(OBSERVATIONS)}")
+        if self.light_colour not in LIGHT_COLOURS:
+            raise ConfigError(f"unknown light colour {self.light_colour!r}; choose {' or '.join(LIGHT_COLOURS)}")
         if not (np.isfinite(self.light_radius) and 0.0 <= self.light_radius <= 0.5):
             raise ConfigError(f"fit light_radius must be in [0, 0.5] metres; got {self.light_radius}")
         if not (np.isfinite(self.light_falloff) and 0.0 <= self.light_falloff <= 10.0):
@@ -171,6 +182,8 @@ def initial_globals(config: SceneOptConfig) -> dict[str, np.ndarray]:
     box = np.asarray(config.light_box, np.float64)
     positions = rng.uniform(box[:, 0], box[:, 1], size=(config.lights, 3))
     intensities = rng.uniform(*config.light_intensity, size=(config.lights, 3))
+    if config.light_colour == "white":
+        intensities = np.repeat(intensities[:, :1], 3, axis=1)
     f = config.init_floor
     return {
         "light_position": positions.astype(np.float32),
@@ -258,6 +271,9 @@ def optimise_scene(dataset: Dataset, config: SceneOptConfig | None = None,
                     _project_material(m)
                 else:
                     loss, grads = renderer.loss_and_grad(params_for(i), targets[i], global_keys)
+                    if config.light_colour == "white":   # the gradient along the grey axis keeps lights white
+                        grads["light_intensity"] = np.repeat(
+                            grads["light_intensity"].mean(axis=-1, keepdims=True), 3, axis=-1)
                     global_adam.step(globals_, grads)
                     _project_globals(globals_)
                 losses.append(loss)

@@ -1,0 +1,63 @@
+"""Attribute recovery on *train* posteriors: score a fit or a sampler choice without the test split.
+
+An evaluation run caches the posteriors of the first train images of every class (the concept
+spread's; ``experiments/sample_train_shots.py`` samples more). This scores them as
+``mitsuba-p3 evaluate`` scores the test split (:func:`~mitsuba_p3.evaluate.metrics.attribute_recovery`,
+with the rule learnt from the fit's materials, the one ``mitsuba-p3 infer`` uses) and lists the
+misread images, so two fits or two samplers are compared on train classes only. Several runs, each
+with its own model, print side by side:
+
+    python experiments/score_train_attributes.py data/fsclvr-lo \\
+        --run out/train-free=data/models/fsclvr-fields3 --run out/train-white=data/models/fsclvr-white
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from mitsuba_p3.benchmarks.dataset import load_dataset
+from mitsuba_p3.evaluate.jobs import cached_train_posteriors
+from mitsuba_p3.evaluate.metrics import attribute_recovery
+from mitsuba_p3.fit.attributes import rules_for
+from mitsuba_p3.fit.model import FittedModel
+
+ATTRIBUTES = ("shape", "material", "size", "colour")
+
+
+def score(dataset, run: Path, model: Path, likelihood: str, shots: int | None) -> dict:
+    """Summary and misreads of one run's cached train posteriors (the first ``shots`` per class)."""
+    cached = {}
+    for posteriors in cached_train_posteriors(dataset, run, likelihood).values():
+        cached.update(dict(sorted(posteriors.items())[:shots]))
+    if not cached:
+        raise SystemExit(f"{run} holds no cached train posteriors for {likelihood}")
+    rows, summary = attribute_recovery(dataset, cached, rules_for(FittedModel(model), dataset))
+    misread = [f"{r['class']}#{r['query']}: " + ", ".join(f"{a} {r[f'{a}_decided']}" for a in ATTRIBUTES
+                                                         if r[f"{a}_true"] != r[f"{a}_decided"])
+               for r in rows if any(r[f"{a}_true"] != r[f"{a}_decided"] for a in ATTRIBUTES)]
+    return {"model": str(model), **{k: round(v, 3) if isinstance(v, float) else v for k, v in summary.items()},
+            "misread": misread}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("dataset", type=Path)
+    parser.add_argument("--run", action="append", required=True, help="RUN=MODEL (repeatable)")
+    parser.add_argument("--likelihood", default="p3")
+    parser.add_argument("--shots", type=int, default=None,
+                        help="score the first N cached train images per class (default: all cached; give the "
+                             "smallest count the runs share, so they score the same images)")
+    args = parser.parse_args()
+    dataset = load_dataset(args.dataset)
+    out = {}
+    for spec in args.run:
+        run, sep, model = spec.partition("=")
+        if not sep:
+            parser.error(f"--run takes RUN=MODEL; got {spec!r}")
+        out[run] = score(dataset, Path(run), Path(model), args.likelihood, args.shots)
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
