@@ -78,13 +78,15 @@ class ReproduceConfig:
     resolution: tuple | None = None    # (H, W) of generated benchmarks; None: the benchmark's default
     observation: str = "phong"         # the observation model of the fits made here (fit --observation)
     light_falloff: float = 0.0         # the lights' falloff distance of the fits made here (fit --light-falloff)
+    light_colour: str = "free"         # the lights' colour in the fits made here (fit --light-colour)
 
     def __post_init__(self):
         from .fit.scene_opt import OBSERVATIONS, SceneOptConfig
 
         if self.observation not in OBSERVATIONS:
             raise ConfigError(f"unknown observation model {self.observation!r}; choose {' or '.join(OBSERVATIONS)}")
-        SceneOptConfig(light_falloff=self.light_falloff)   # refuses a bad distance before anything is generated
+        # refuses a bad distance or light colour before anything is generated
+        SceneOptConfig(light_falloff=self.light_falloff, light_colour=self.light_colour)
         object.__setattr__(self, "light_falloff", float(self.light_falloff))
         object.__setattr__(self, "benchmarks", tuple(self.benchmarks))
         if self.resolution is not None:
@@ -99,10 +101,10 @@ class ReproduceConfig:
 
 def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] | None = None,
             resolution: tuple[int, int] | None = None, observation: str = "phong",
-            light_falloff: float = 0.0) -> tuple[Path, Path]:
+            light_falloff: float = 0.0, light_colour: str = "free") -> tuple[Path, Path]:
     """The benchmark folder and the model folder evaluation uses (made when missing; generated at
     ``resolution``, (H, W), or the benchmark's default; fitted with the ``observation`` model and the lights'
-    ``light_falloff``, in the folder :func:`model_name` names)."""
+    ``light_falloff`` and ``light_colour``, in the folder :func:`model_name` names)."""
     from .benchmarks.generate import generate
     from .fit.model import FittedModel, fit_model
     from .fit.scene_opt import SceneOptConfig
@@ -111,12 +113,13 @@ def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] 
     generate(variant, folder, resolution=resolution,
              progress=(lambda d, t: progress(f"{variant}: generate", d, t)) if progress else None)
     source = fitted_on(variant)
-    model = data / "models" / model_name(source, observation, light_falloff)
+    model = data / "models" / model_name(source, observation, light_falloff, light_colour)
     if not (model / "model.json").exists():
         if source != variant:
             generate(source, data / source, resolution=resolution)
         fit_model(data / source, model, scene_config=SceneOptConfig(observation=observation,
-                                                                    light_falloff=light_falloff),
+                                                                    light_falloff=light_falloff,
+                                                                    light_colour=light_colour),
                   progress=(lambda stage, d, t, _: progress(f"{source}: fit {stage}", d, t)) if progress else None)
         return folder, model
     # a folder already there (a user's own fit, or an earlier call's) must be the world asked for
@@ -124,14 +127,21 @@ def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] 
     if abs(fitted - light_falloff) > 1e-6:
         raise ConfigError(f"{model} was fitted with light falloff {fitted:g}, not the {light_falloff:g} asked for; "
                           f"move it away or ask for {fitted:g}")
+    # a folder fitted before the option existed has the paper's free lights
+    colour = FittedModel(model).info["stages"]["scene"]["config"].get("light_colour", "free")
+    if colour != light_colour:
+        raise ConfigError(f"{model} was fitted with {colour} lights, not the {light_colour} asked for; "
+                          f"move it away or ask for {colour}")
     return folder, model
 
 
-def model_name(source: str, observation: str = "phong", light_falloff: float = 0.0) -> str:
+def model_name(source: str, observation: str = "phong", light_falloff: float = 0.0, light_colour: str = "free") -> str:
     """The model folder's name under ``data/models``: the benchmark's own for the paper's world (Phong, no
-    falloff), else with the observation model and ``falloffD`` appended (``fsclvr-microfacet-falloff0.5``)."""
+    falloff, free lights), else with the observation model, ``falloffD`` and the light colour appended
+    (``fsclvr-microfacet-falloff0.5-white``)."""
     name = source if observation == "phong" else f"{source}-{observation}"
-    return name if light_falloff == 0 else f"{name}-falloff{light_falloff:g}"
+    name = name if light_falloff == 0 else f"{name}-falloff{light_falloff:g}"
+    return name if light_colour == "free" else f"{name}-{light_colour}"
 
 
 def fitted_on(variant: str) -> str:
@@ -180,7 +190,7 @@ def reproduce(data: str | Path, out: str | Path, config: ReproduceConfig | None 
     for variant in config.benchmarks:
         start = time.perf_counter()
         folder, model = prepare(data, variant, progress, config.resolution, config.observation,
-                                config.light_falloff)
+                                config.light_falloff, config.light_colour)
         prepared = (time.perf_counter() - start) / 60
         start = time.perf_counter()
         noise = evaluation.noise if evaluation.noise != "paper" and evaluation.sigma is None else evaluation.sigma

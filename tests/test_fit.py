@@ -94,7 +94,8 @@ def test_white_lights_stay_achromatic_while_the_fit_moves_them(tiny_dataset):
 
 def test_reproduce_names_and_checks_the_falloff_of_its_models(tiny_model, tmp_path, monkeypatch):
     """reproduce --light-falloff D fits into data/models/V-falloffD (the paper's world keeps data/models/V) and
-    refuses a model folder there that was fitted with another falloff, rather than evaluate in the wrong world."""
+    refuses a model folder there that was fitted with another falloff, rather than evaluate in the wrong world;
+    the same for --light-colour white (data/models/V-white)."""
     import mitsuba_p3.benchmarks.generate as generate_module
     from mitsuba_p3.errors import ConfigError
     from mitsuba_p3.reproduce import ReproduceConfig, model_name, prepare
@@ -102,8 +103,11 @@ def test_reproduce_names_and_checks_the_falloff_of_its_models(tiny_model, tmp_pa
     assert model_name("fsclvr") == "fsclvr"
     assert model_name("fsclvr", light_falloff=0.5) == "fsclvr-falloff0.5"
     assert model_name("fsclvr", "microfacet", 0.5) == "fsclvr-microfacet-falloff0.5"
+    assert model_name("fsclvr", light_colour="white") == "fsclvr-white"
     with pytest.raises(ConfigError, match="light_falloff"):
         ReproduceConfig(light_falloff=-0.5)
+    with pytest.raises(ConfigError, match="light colour"):
+        ReproduceConfig(light_colour="warm")
 
     monkeypatch.setattr(generate_module, "generate", lambda *args, **kwargs: None)
     (tmp_path / "models").mkdir()
@@ -112,6 +116,9 @@ def test_reproduce_names_and_checks_the_falloff_of_its_models(tiny_model, tmp_pa
     (tmp_path / "models" / "fsclvr-falloff0.5").symlink_to(tiny_model.root)   # fitted without falloff
     with pytest.raises(ConfigError, match="fitted with light falloff 0"):
         prepare(tmp_path, "fsclvr", light_falloff=0.5)
+    (tmp_path / "models" / "fsclvr-white").symlink_to(tiny_model.root)   # fitted with free lights
+    with pytest.raises(ConfigError, match="fitted with free lights"):
+        prepare(tmp_path, "fsclvr", light_colour="white")
 
 
 @pytest.mark.slow

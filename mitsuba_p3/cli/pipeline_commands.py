@@ -299,6 +299,8 @@ def reproduce(
     light_falloff: float = typer.Option(0.0, help="The lights' falloff distance of the fits made here (as fit "
                                                   "--light-falloff; models go to data/models/V-falloffD unless 0, "
                                                   "the paper's world)."),
+    light_colour: str = typer.Option("free", help="The lights' colour in the fits made here (as fit --light-colour; "
+                                                  "models go to data/models/V-white for white)."),
     tables_only: bool = typer.Option(False, "--tables-only", help="Only write the tables and figures again from "
                                      "the runs and scored baselines already in OUT (nothing generated or sampled)."),
 ) -> None:
@@ -325,7 +327,7 @@ def reproduce(
                                   distance=DistanceConfig(properties=parse_properties(distance),
                                                           spread_shots=spread_shots, direction=kl))
     height, width = parse_resolution(resolution)
-    config = ReproduceConfig(observation=observation, light_falloff=light_falloff,
+    config = ReproduceConfig(observation=observation, light_falloff=light_falloff, light_colour=light_colour,
                              benchmarks=tuple(b.strip() for b in benchmarks.split(",") if b.strip()),
                              evaluation=evaluation, resolution=(height, width) if height else None)
     start = time.perf_counter()
