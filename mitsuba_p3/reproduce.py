@@ -78,7 +78,7 @@ class ReproduceConfig:
     resolution: tuple | None = None    # (H, W) of generated benchmarks; None: the benchmark's default
     observation: str = "phong"         # the observation model of the fits made here (fit --observation)
     light_falloff: float = 0.0         # the lights' falloff distance of the fits made here (fit --light-falloff)
-    light_colour: str = "free"         # the lights' colour in the fits made here (fit --light-colour)
+    light_colour: str = "white"        # the lights' colour in the fits made here (fit --light-colour)
 
     def __post_init__(self):
         from .fit.scene_opt import OBSERVATIONS, SceneOptConfig
@@ -101,7 +101,7 @@ class ReproduceConfig:
 
 def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] | None = None,
             resolution: tuple[int, int] | None = None, observation: str = "phong",
-            light_falloff: float = 0.0, light_colour: str = "free") -> tuple[Path, Path]:
+            light_falloff: float = 0.0, light_colour: str = "white") -> tuple[Path, Path]:
     """The benchmark folder and the model folder evaluation uses (made when missing; generated at
     ``resolution``, (H, W), or the benchmark's default; fitted with the ``observation`` model and the lights'
     ``light_falloff`` and ``light_colour``, in the folder :func:`model_name` names)."""
@@ -135,13 +135,14 @@ def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] 
     return folder, model
 
 
-def model_name(source: str, observation: str = "phong", light_falloff: float = 0.0, light_colour: str = "free") -> str:
-    """The model folder's name under ``data/models``: the benchmark's own for the paper's world (Phong, no
-    falloff, free lights), else with the observation model, ``falloffD`` and the light colour appended
-    (``fsclvr-microfacet-falloff0.5-white``)."""
+def model_name(source: str, observation: str = "phong", light_falloff: float = 0.0,
+               light_colour: str = "white") -> str:
+    """The model folder's name under ``data/models``: the benchmark's own for the default world (Phong, no
+    falloff, white lights), else with the observation model, ``falloffD`` and ``free`` (the paper's free
+    lights) appended (``fsclvr-microfacet-falloff0.5-free``)."""
     name = source if observation == "phong" else f"{source}-{observation}"
     name = name if light_falloff == 0 else f"{name}-falloff{light_falloff:g}"
-    return name if light_colour == "free" else f"{name}-{light_colour}"
+    return name if light_colour == "white" else f"{name}-{light_colour}"
 
 
 def fitted_on(variant: str) -> str:

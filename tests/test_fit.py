@@ -76,8 +76,8 @@ def test_fit_light_falloff_is_kept_in_the_fitted_world():
 
 
 def test_white_lights_stay_achromatic_while_the_fit_moves_them(tiny_dataset):
-    """fit --light-colour white: each light one intensity in every channel, through Adam and the projection,
-    while the fit still moves it; free lights (the paper's) are RGB; an unknown option is refused."""
+    """fit --light-colour white (the default): each light one intensity in every channel, through Adam and the
+    projection, while the fit still moves it; free lights (the paper's) are RGB; an unknown option is refused."""
     from mitsuba_p3.errors import ConfigError
     from mitsuba_p3.fit.scene_opt import initial_globals
 
@@ -86,7 +86,8 @@ def test_white_lights_stay_achromatic_while_the_fit_moves_them(tiny_dataset):
     lights = optimise_scene(load_dataset(tiny_dataset, resolution=config.resolution), config).globals["light_intensity"]
     assert np.array_equal(lights, np.repeat(lights[:, :1], 3, axis=1))
     assert np.max(np.abs(lights - start)) > 1e-3
-    free = initial_globals(SceneOptConfig(**TINY_FIT))["light_intensity"]
+    assert SceneOptConfig().light_colour == "white"   # the default, chosen on train classes
+    free = initial_globals(SceneOptConfig(**TINY_FIT, light_colour="free"))["light_intensity"]
     assert np.ptp(free, axis=1).max() > 0.01
     with pytest.raises(ConfigError, match="light colour"):
         SceneOptConfig(**TINY_FIT, light_colour="warm")
@@ -95,7 +96,7 @@ def test_white_lights_stay_achromatic_while_the_fit_moves_them(tiny_dataset):
 def test_reproduce_names_and_checks_the_falloff_of_its_models(tiny_model, tmp_path, monkeypatch):
     """reproduce --light-falloff D fits into data/models/V-falloffD (the paper's world keeps data/models/V) and
     refuses a model folder there that was fitted with another falloff, rather than evaluate in the wrong world;
-    the same for --light-colour white (data/models/V-white)."""
+    the same for --light-colour free (the paper's lights, data/models/V-free)."""
     import mitsuba_p3.benchmarks.generate as generate_module
     from mitsuba_p3.errors import ConfigError
     from mitsuba_p3.reproduce import ReproduceConfig, model_name, prepare
@@ -103,7 +104,7 @@ def test_reproduce_names_and_checks_the_falloff_of_its_models(tiny_model, tmp_pa
     assert model_name("fsclvr") == "fsclvr"
     assert model_name("fsclvr", light_falloff=0.5) == "fsclvr-falloff0.5"
     assert model_name("fsclvr", "microfacet", 0.5) == "fsclvr-microfacet-falloff0.5"
-    assert model_name("fsclvr", light_colour="white") == "fsclvr-white"
+    assert model_name("fsclvr", light_colour="free") == "fsclvr-free"
     with pytest.raises(ConfigError, match="light_falloff"):
         ReproduceConfig(light_falloff=-0.5)
     with pytest.raises(ConfigError, match="light colour"):
@@ -116,9 +117,9 @@ def test_reproduce_names_and_checks_the_falloff_of_its_models(tiny_model, tmp_pa
     (tmp_path / "models" / "fsclvr-falloff0.5").symlink_to(tiny_model.root)   # fitted without falloff
     with pytest.raises(ConfigError, match="fitted with light falloff 0"):
         prepare(tmp_path, "fsclvr", light_falloff=0.5)
-    (tmp_path / "models" / "fsclvr-white").symlink_to(tiny_model.root)   # fitted with free lights
-    with pytest.raises(ConfigError, match="fitted with free lights"):
-        prepare(tmp_path, "fsclvr", light_colour="white")
+    (tmp_path / "models" / "fsclvr-free").symlink_to(tiny_model.root)   # fitted with white lights
+    with pytest.raises(ConfigError, match="fitted with white lights"):
+        prepare(tmp_path, "fsclvr", light_colour="free")
 
 
 @pytest.mark.slow

@@ -10,6 +10,7 @@ import typer
 
 from ..concepts import DistanceConfig
 from ..evaluate.config import PRESET
+from ..fit.scene_opt import SceneOptConfig
 from ..infer.likelihood import DEFAULT_NOISE
 from ..infer.mcmc import SamplerConfig
 from ..infer.smc import GPU_PARTICLES, SMCConfig
@@ -79,8 +80,10 @@ def fit(
                                                   "reference distance in metres (0.5: about the lights' distance "
                                                   "from the table), in the fit and every render of the model (0: "
                                                   "no falloff, the paper's)."),
-    light_colour: str = typer.Option("free", help="free: each light an RGB intensity (the paper's); white: "
-                                                  "achromatic lights, the light's tint left to the fitted colours."),
+    light_colour: str = typer.Option(SceneOptConfig.light_colour,
+                                     help="white: achromatic lights, the light's tint left to the fitted colours "
+                                          "(chosen on train classes, docs/notebook.md); free: each light an RGB "
+                                          "intensity (the paper's)."),
 ) -> None:
     """Training stage: scene optimisation, feature selection and priors -> a fitted-model folder."""
     from ..fit.model import fit_model
@@ -299,8 +302,9 @@ def reproduce(
     light_falloff: float = typer.Option(0.0, help="The lights' falloff distance of the fits made here (as fit "
                                                   "--light-falloff; models go to data/models/V-falloffD unless 0, "
                                                   "the paper's world)."),
-    light_colour: str = typer.Option("free", help="The lights' colour in the fits made here (as fit --light-colour; "
-                                                  "models go to data/models/V-white for white)."),
+    light_colour: str = typer.Option(SceneOptConfig.light_colour,
+                                     help="The lights' colour in the fits made here (as fit --light-colour; models "
+                                          "go to data/models/V-free for the paper's free lights)."),
     tables_only: bool = typer.Option(False, "--tables-only", help="Only write the tables and figures again from "
                                      "the runs and scored baselines already in OUT (nothing generated or sampled)."),
 ) -> None:

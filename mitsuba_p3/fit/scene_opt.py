@@ -8,24 +8,25 @@ image loss, one image per step, alternating passes that update only materials
 with passes that update only the globals. Gradients come from Dr.Jit
 (:meth:`MitsubaRenderer.loss_and_grad`).
 
-One deviation, stated: the shininess alpha is optimised as log(alpha), so a
+Two deviations, stated. The shininess alpha is optimised as log(alpha), so a
 learning rate of 0.01 can move it between rubber (~4) and metal (~40) within
 the schedule; every other parameter is optimised directly and projected back
-to its valid range after each step.
+to its valid range after each step. And the lights are white by default
+(``light_colour="white"``: one intensity per light, the same in each channel;
+``"free"``, an RGB intensity per light, is the paper's). A light's colour
+multiplies every material's fitted colour, so the images identify it only
+through the white-weighted highlight and the floor; left free it drifts to a
+tint that the class colours then cancel, and a gray metal's highlight renders
+tinted. Held white, the benchmark's light tint goes into the fitted colours,
+where the colour posterior reads it (chosen on train classes, docs/notebook.md).
 
-Five options beyond the paper, all off by default: ``observation="hemisphere"`` also fits the
+Four options beyond the paper, all off by default: ``observation="hemisphere"`` also fits the
 environment's sky and ground radiance with the globals (:mod:`mitsuba_p3.render.hemisphere`),
 ``observation="microfacet"`` gives every surface the GGX microfacet lobe in place of Phong's highlight
 (:mod:`mitsuba_p3.render.lobes`; the same parameters, so the rest of the pipeline is unchanged),
 ``light_radius`` widens every light into a disc for soft shadows (fixed, not fitted: visibility has
 no gradient; :mod:`mitsuba_p3.render.soft_shadows`), and ``light_falloff`` gives the lights the inverse-square
 falloff of physical lights (:mod:`mitsuba_p3.render.falloff`).
-
-``light_colour="white"`` holds every light achromatic (one intensity per light, the same in each
-channel). A light's colour multiplies every material's fitted colour, so the images identify it only
-through the white-weighted highlight and the floor; left free (the paper's, per channel) it can drift
-to a tint that the class colours then cancel, and a gray metal's highlight renders tinted. Held
-white, the benchmark's light tint goes into the fitted colours, where the colour posterior reads it.
 """
 from __future__ import annotations
 
@@ -46,7 +47,7 @@ GLOBAL_KEYS = ("light_position", "light_intensity", "floor_colour", "floor_ambie
 # the environment's two hemispheres, fitted with the globals under the hemisphere observation model
 HEMISPHERE_KEYS = ("sky", "ground")
 OBSERVATIONS = ("phong", "hemisphere", "microfacet")
-# free: each light an RGB intensity (the paper's); white: one intensity per light, the same in every channel
+# white: one intensity per light, the same in every channel (the default); free: each an RGB intensity (the paper's)
 LIGHT_COLOURS = ("free", "white")
 # where the sky and ground start (radiance, display units): a dim grey environment
 INITIAL_HEMISPHERE = 0.05
@@ -75,7 +76,7 @@ class SceneOptConfig:
     # phong: point lights and a constant ambient term (the paper's); hemisphere: also a fitted sky and ground
     # (render/hemisphere.py)
     observation: str = "phong"
-    light_colour: str = "free"   # LIGHT_COLOURS (module docstring)
+    light_colour: str = "white"   # LIGHT_COLOURS (module docstring)
     seed: int = 777
     init_material: dict = field(default_factory=lambda: {"ambient": 0.1, "diffuse": 0.9, "specular": 0.5,
                                                          "shininess": 4.0})
