@@ -128,7 +128,7 @@ def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] 
         raise ConfigError(f"{model} was fitted with light falloff {fitted:g}, not the {light_falloff:g} asked for; "
                           f"move it away or ask for {fitted:g}")
     # a folder fitted before the option existed has the paper's free lights
-    colour = FittedModel(model).info["stages"]["scene"]["config"].get("light_colour", "free")
+    colour = FittedModel(model).info["stages"].get("scene", {}).get("config", {}).get("light_colour", "free")
     if colour != light_colour:
         raise ConfigError(f"{model} was fitted with {colour} lights, not the {light_colour} asked for; "
                           f"move it away or ask for {colour}")

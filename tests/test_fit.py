@@ -36,12 +36,18 @@ def tiny_model(tiny_dataset, tmp_path_factory):
 
 
 # ------------------------------------------------------------------ scene optimisation
-def test_optimisation_lowers_the_loss_substantially(tiny_model):
+def test_optimisation_lowers_the_loss_substantially(tiny_model, tiny_dataset):
+    """From the paper's random RGB lights the fit more than halves the first pass's loss. The default white
+    lights start grey, nearer the images (a first pass about 40% lower), and the fit lowers the loss from
+    there to about where the free lights end."""
     curve = (tiny_model.root / "loss_curve.csv").read_text().splitlines()[1:]
     losses = [float(row.split(",")[-1]) for row in curve]
-    assert losses[-1] < 0.5 * losses[0]
     final = tiny_model.info["stages"]["scene"]["final_mean_squared_error"]
-    assert final < 0.5 * losses[0]
+    assert losses[-1] < losses[0] and final < losses[0]
+    config = SceneOptConfig(**TINY_FIT, light_colour="free")
+    free = optimise_scene(load_dataset(tiny_dataset, resolution=config.resolution), config)
+    assert free.final_loss < 0.5 * free.loss_curve[0]["loss"]
+    assert final < 1.05 * free.final_loss
 
 
 def test_the_observation_model_picks_the_lobe_of_every_render_of_the_model():
