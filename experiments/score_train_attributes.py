@@ -33,9 +33,11 @@ def score(dataset, run: Path, model: Path, likelihood: str, shots: int | None) -
     if not cached:
         raise SystemExit(f"{run} holds no cached train posteriors for {likelihood}")
     rows, summary = attribute_recovery(dataset, cached, rules_for(FittedModel(model), dataset))
-    misread = [f"{r['class']}#{r['query']}: " + ", ".join(f"{a} {r[f'{a}_decided']}" for a in ATTRIBUTES
-                                                         if r[f"{a}_true"] != r[f"{a}_decided"])
-               for r in rows if any(r[f"{a}_true"] != r[f"{a}_decided"] for a in ATTRIBUTES)]
+    misread = []
+    for r in rows:
+        wrong = [f"{a} {r[f'{a}_decided']}" for a in ATTRIBUTES if r[f"{a}_true"] != r[f"{a}_decided"]]
+        if wrong:
+            misread.append(f"{r['class']}#{r['query']}: " + ", ".join(wrong))
     return {"model": str(model), **{k: round(v, 3) if isinstance(v, float) else v for k, v in summary.items()},
             "misread": misread}
 

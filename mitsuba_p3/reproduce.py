@@ -48,6 +48,7 @@ from .errors import ConfigError, EvaluationError
 from .evaluate import SETTINGS, EvaluationConfig, evaluate, load_baselines, markdown_table, setting_name
 from .evaluate.run import sample_spread
 from .files import atomic_json, atomic_open, atomic_write
+from .fit.scene_opt import OBSERVATIONS, SceneOptConfig
 from .infer.likelihood import DEFAULT_NOISE, NOISES
 
 PAPER_ACCURACY = {  # shared/PAPER_NOTES.md: 5w1s / 5w5s / 10w1s / 10w5s (their data sets)
@@ -78,11 +79,9 @@ class ReproduceConfig:
     resolution: tuple | None = None    # (H, W) of generated benchmarks; None: the benchmark's default
     observation: str = "phong"         # the observation model of the fits made here (fit --observation)
     light_falloff: float = 0.0         # the lights' falloff distance of the fits made here (fit --light-falloff)
-    light_colour: str = "white"        # the lights' colour in the fits made here (fit --light-colour)
+    light_colour: str = SceneOptConfig.light_colour   # the lights' colour in the fits made here (fit --light-colour)
 
     def __post_init__(self):
-        from .fit.scene_opt import OBSERVATIONS, SceneOptConfig
-
         if self.observation not in OBSERVATIONS:
             raise ConfigError(f"unknown observation model {self.observation!r}; choose {' or '.join(OBSERVATIONS)}")
         # refuses a bad distance or light colour before anything is generated
@@ -101,13 +100,12 @@ class ReproduceConfig:
 
 def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] | None = None,
             resolution: tuple[int, int] | None = None, observation: str = "phong",
-            light_falloff: float = 0.0, light_colour: str = "white") -> tuple[Path, Path]:
+            light_falloff: float = 0.0, light_colour: str = SceneOptConfig.light_colour) -> tuple[Path, Path]:
     """The benchmark folder and the model folder evaluation uses (made when missing; generated at
     ``resolution``, (H, W), or the benchmark's default; fitted with the ``observation`` model and the lights'
     ``light_falloff`` and ``light_colour``, in the folder :func:`model_name` names)."""
     from .benchmarks.generate import generate
     from .fit.model import FittedModel, fit_model
-    from .fit.scene_opt import SceneOptConfig
 
     folder = data / variant
     generate(variant, folder, resolution=resolution,
@@ -123,12 +121,13 @@ def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] 
                   progress=(lambda stage, d, t, _: progress(f"{source}: fit {stage}", d, t)) if progress else None)
         return folder, model
     # a folder already there (a user's own fit, or an earlier call's) must be the world asked for
-    fitted = float(FittedModel(model).globals.get("light_falloff", 0.0))
+    existing = FittedModel(model)
+    fitted = float(existing.globals.get("light_falloff", 0.0))
     if abs(fitted - light_falloff) > 1e-6:
         raise ConfigError(f"{model} was fitted with light falloff {fitted:g}, not the {light_falloff:g} asked for; "
                           f"move it away or ask for {fitted:g}")
     # a folder fitted before the option existed has the paper's free lights
-    colour = FittedModel(model).info["stages"].get("scene", {}).get("config", {}).get("light_colour", "free")
+    colour = existing.info["stages"].get("scene", {}).get("config", {}).get("light_colour", "free")
     if colour != light_colour:
         raise ConfigError(f"{model} was fitted with {colour} lights, not the {light_colour} asked for; "
                           f"move it away or ask for {colour}")
@@ -136,13 +135,13 @@ def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] 
 
 
 def model_name(source: str, observation: str = "phong", light_falloff: float = 0.0,
-               light_colour: str = "white") -> str:
+               light_colour: str = SceneOptConfig.light_colour) -> str:
     """The model folder's name under ``data/models``: the benchmark's own for the default world (Phong, no
     falloff, white lights), else with the observation model, ``falloffD`` and ``free`` (the paper's free
     lights) appended (``fsclvr-microfacet-falloff0.5-free``)."""
     name = source if observation == "phong" else f"{source}-{observation}"
     name = name if light_falloff == 0 else f"{name}-falloff{light_falloff:g}"
-    return name if light_colour == "white" else f"{name}-{light_colour}"
+    return name if light_colour == SceneOptConfig.light_colour else f"{name}-{light_colour}"
 
 
 def fitted_on(variant: str) -> str:
