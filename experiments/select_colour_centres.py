@@ -1,0 +1,100 @@
+"""Which colour centres? The fit's materials against the train posteriors', leave one class out.
+
+The colour rule (:class:`~mitsuba_p3.fit.attributes.AttributeRules`) names a posterior's colour
+by the nearest *centre*, a chromaticity per train colour and material kind. Two sources:
+
+- ``fit``: the chromaticity of each fitted material (``materials.json``), the rule every
+  command uses now;
+- ``posteriors``: the mean chromaticity of the train posteriors' median reflectances of
+  that colour and kind, so the rule is learnt on the kind of input it is applied to, as the
+  material rule learnt on posteriors is. A colour and kind held by the held-out class only
+  keeps its fit centre.
+
+Each train class is held out in turn: the ``posteriors`` centres are made without its
+posteriors and scored on them (the ``fit`` centres are fixed). Prints JSON per run: colour
+accuracy per source and the misread images. Choose on train classes; the test split is for
+the final figure.
+
+    python experiments/select_colour_centres.py data/studio-lo \\
+        --run out/studio-train-white=data/models/studio-white
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from mitsuba_p3.benchmarks.dataset import load_dataset
+from mitsuba_p3.evaluate.jobs import cached_train_posteriors
+from mitsuba_p3.fit.attributes import chromaticity, reflectance, rules_for
+from mitsuba_p3.fit.model import FittedModel
+
+
+def posterior_chromaticity(posterior) -> np.ndarray:
+    """(3,) the chromaticity of a posterior's median reflectance (what the colour rule reads)."""
+    return chromaticity(np.median(reflectance(posterior.program.samples), axis=0))
+
+
+def held_out_centres(rules, materials: dict, points: dict[str, list[tuple[str, np.ndarray]]], held_out: str):
+    """``rules`` with each fitted material's centre replaced by the mean chromaticity of the train
+    posteriors of its colour and kind outside class ``held_out`` (``points``: key ``colour-kind`` ->
+    [(class, chromaticity)]); keys without such posteriors keep the fit's centre."""
+    centres = np.array(rules.colour_albedos, np.float64)
+    for i, key in enumerate(materials):
+        others = [c for name, c in points.get(key, []) if name != held_out]
+        if others:
+            centres[i] = np.mean(others, axis=0)
+    return replace(rules, colour_albedos=centres)
+
+
+def compare(dataset, run: Path, model: Path, likelihood: str) -> dict:
+    """Colour accuracy of both sources on one run's cached train posteriors, each class held out."""
+    fitted = FittedModel(model)
+    rules = rules_for(fitted, dataset)
+    labels = dataset.class_labels
+    posteriors = {name: p for name, p in cached_train_posteriors(dataset, run, likelihood).items() if p}
+    if not posteriors:
+        raise SystemExit(f"{run} holds no cached train posteriors for {likelihood}")
+    chroma = {name: {i: posterior_chromaticity(p) for i, p in group.items()} for name, group in posteriors.items()}
+    points: dict[str, list] = {}
+    for name, group in chroma.items():
+        key = f"{labels[name].colour}-{labels[name].material}"
+        points.setdefault(key, []).extend((name, c) for c in group.values())
+    right = {"fit": 0, "posteriors": 0}
+    misread = {"fit": [], "posteriors": []}
+    count = 0
+    for name, group in chroma.items():
+        truth = labels[name].colour
+        sources = {"fit": rules, "posteriors": held_out_centres(rules, fitted.materials, points, name)}
+        for index, c in group.items():
+            count += 1
+            for source, r in sources.items():
+                named = r.colour_names[int(np.argmin(np.sum((r.colour_albedos - c) ** 2, axis=1)))]
+                right[source] += named == truth
+                if named != truth:
+                    misread[source].append(f"{name}#{index}: {named}")
+    return {"model": str(model), "posteriors": count,
+            **{f"colour_{source}": round(right[source] / count, 3) for source in right}, "misread": misread}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("dataset", type=Path)
+    parser.add_argument("--run", action="append", required=True, help="RUN=MODEL (repeatable)")
+    parser.add_argument("--likelihood", default="p3")
+    args = parser.parse_args()
+    dataset = load_dataset(args.dataset)
+    out = {}
+    for spec in args.run:
+        run, sep, model = spec.partition("=")
+        if not sep:
+            parser.error(f"--run takes RUN=MODEL; got {spec!r}")
+        out[run] = compare(dataset, Path(run), Path(model), args.likelihood)
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
