@@ -52,13 +52,19 @@ def main() -> None:
                              "smallest count the runs share, so they score the same images)")
     args = parser.parse_args()
     dataset = load_dataset(args.dataset)
-    out = {}
-    for spec in args.run:
+    out = {str(run): score(dataset, run, model, args.likelihood, args.shots) for run, model in run_specs(parser, args.run)}
+    print(json.dumps(out, indent=2))
+
+
+def run_specs(parser: argparse.ArgumentParser, specs: list[str]) -> list[tuple[Path, Path]]:
+    """``--run RUN=MODEL`` arguments as (run, model) folders; a malformed one is the parser's error."""
+    pairs = []
+    for spec in specs:
         run, sep, model = spec.partition("=")
         if not sep:
             parser.error(f"--run takes RUN=MODEL; got {spec!r}")
-        out[run] = score(dataset, Path(run), Path(model), args.likelihood, args.shots)
-    print(json.dumps(out, indent=2))
+        pairs.append((Path(run), Path(model)))
+    return pairs
 
 
 if __name__ == "__main__":

@@ -31,6 +31,7 @@ from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.evaluate.jobs import cached_train_posteriors
 from mitsuba_p3.fit.attributes import chromaticity, reflectance, rules_for
 from mitsuba_p3.fit.model import FittedModel
+from score_train_attributes import run_specs  # the sibling experiment's --run RUN=MODEL
 
 
 def posterior_chromaticity(posterior) -> np.ndarray:
@@ -87,12 +88,7 @@ def main() -> None:
     parser.add_argument("--likelihood", default="p3")
     args = parser.parse_args()
     dataset = load_dataset(args.dataset)
-    out = {}
-    for spec in args.run:
-        run, sep, model = spec.partition("=")
-        if not sep:
-            parser.error(f"--run takes RUN=MODEL; got {spec!r}")
-        out[run] = compare(dataset, Path(run), Path(model), args.likelihood)
+    out = {str(run): compare(dataset, run, model, args.likelihood) for run, model in run_specs(parser, args.run)}
     print(json.dumps(out, indent=2))
 
 

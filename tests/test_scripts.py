@@ -402,3 +402,25 @@ def test_the_sbc_bias_probe_finds_the_class_whose_ranks_lean():
     assert fair["ks_p"].min() > 1e-3 and abs(fair["mean_rank"][0] - 49.5) < 6
     assert leaning["ks_p"][0] < 1e-6 and leaning["mean_rank"][0] > 80 and leaning["ks_p"][1] > 1e-3
     assert leaning["outside"][0] > fair["outside"][0]
+
+
+def test_colour_centres_from_posteriors_leave_the_held_out_class_out():
+    """experiments/select_colour_centres.py: a centre becomes the mean of the *other* classes' posterior
+    chromaticities of its colour and kind; a key only the held-out class holds keeps the fit's centre."""
+    from mitsuba_p3.fit.attributes import AttributeRules
+
+    module = load_script("select_colour_centres")
+    materials = {"red-rubber": {}, "brown-rubber": {}}
+    rules = AttributeRules(None, "rubber", ["red", "brown", "blue"], np.array([[0.6, 0.2, 0.2], [0.45, 0.32, 0.23],
+                                                                             [0.2, 0.2, 0.6]]))
+    points = {"red-rubber": [("large-red-rubber-cube", np.array([0.5, 0.3, 0.2])),
+                             ("small-red-rubber-sphere", np.array([0.7, 0.1, 0.2])),
+                             ("small-red-rubber-sphere", np.array([0.7, 0.2, 0.1]))],
+              "brown-rubber": [("large-brown-rubber-cube", np.array([0.5, 0.3, 0.2]))]}
+    out = module.held_out_centres(rules, materials, points, "large-brown-rubber-cube")
+    np.testing.assert_allclose(out.colour_albedos[0], [0.633333, 0.2, 0.166667], atol=1e-6)   # all three red
+    np.testing.assert_allclose(out.colour_albedos[1], [0.45, 0.32, 0.23])      # only the held-out class: the fit's
+    np.testing.assert_allclose(out.colour_albedos[2], [0.2, 0.2, 0.6])         # a colour the fit never saw: its label
+    out = module.held_out_centres(rules, materials, points, "small-red-rubber-sphere")
+    np.testing.assert_allclose(out.colour_albedos[0], [0.5, 0.3, 0.2])
+    np.testing.assert_allclose(rules.colour_albedos[0], [0.6, 0.2, 0.2])       # the rules given are not changed
