@@ -25,11 +25,12 @@ from mitsuba_p3.fit.model import FittedModel
 ATTRIBUTES = ("shape", "material", "size", "colour")
 
 
-def score(dataset, run: Path, model: Path, likelihood: str, shots: int | None) -> dict:
-    """Summary and misreads of one run's cached train posteriors (the first ``shots`` per class)."""
+def score(dataset, run: Path, model: Path, likelihood: str, shots: int | None, only: set[int] | None = None) -> dict:
+    """Summary and misreads of one run's cached train posteriors (the first ``shots`` per class; with
+    ``only``, of those images only)."""
     cached = {}
     for posteriors in cached_train_posteriors(dataset, run, likelihood).values():
-        cached.update(dict(sorted(posteriors.items())[:shots]))
+        cached.update({i: p for i, p in sorted(posteriors.items())[:shots] if only is None or i in only})
     if not cached:
         raise SystemExit(f"{run} holds no cached train posteriors for {likelihood}")
     rows, summary = attribute_recovery(dataset, cached, rules_for(FittedModel(model), dataset))
@@ -50,9 +51,16 @@ def main() -> None:
     parser.add_argument("--shots", type=int, default=None,
                         help="score the first N cached train images per class (default: all cached; give the "
                              "smallest count the runs share, so they score the same images)")
+    parser.add_argument("--common", action="store_true",
+                        help="score only the images every run has cached (runs still sampling, compared pairwise)")
     args = parser.parse_args()
     dataset = load_dataset(args.dataset)
-    out = {str(run): score(dataset, run, model, args.likelihood, args.shots) for run, model in run_specs(parser, args.run)}
+    runs = run_specs(parser, args.run)
+    only = None
+    if args.common:
+        only = set.intersection(*({i for group in cached_train_posteriors(dataset, run, args.likelihood).values()
+                                   for i in group} for run, _ in runs))
+    out = {str(run): score(dataset, run, model, args.likelihood, args.shots, only) for run, model in runs}
     print(json.dumps(out, indent=2))
 
 
