@@ -73,7 +73,7 @@ def compare(dataset, run: Path, model: Path, likelihood: str) -> dict:
         for index, c in group.items():
             count += 1
             for source, r in sources.items():
-                named = r.colour_names[int(np.argmin(np.sum((r.colour_albedos - c) ** 2, axis=1)))]
+                named = r.colour_name(c)
                 right[source] += named == truth
                 if named != truth:
                     misread[source].append(f"{name}#{index}: {named}")

@@ -160,6 +160,10 @@ class AttributeRules:
         """Whether :meth:`decide` needs the posterior's Phong misfit."""
         return self.material_model is not None and self.material_features.endswith("+misfit")
 
+    def colour_name(self, colour: np.ndarray) -> str:
+        """The colour name of the reference chromaticity nearest ``colour`` (3,), a chromaticity."""
+        return self.colour_names[int(np.argmin(np.sum((self.colour_albedos - colour) ** 2, axis=1)))]
+
     def decide(self, samples: dict, misfit: float | None = None) -> dict:
         """Attribute names (and the shape's posterior probabilities) from posterior samples:
         ``class`` (n,), ``scale`` (n, 3), ``colour`` (n, 3), ``ambient``/``diffuse``/``specular``/``shininess``
@@ -174,8 +178,7 @@ class AttributeRules:
             kind, metal = self.only_kind, float(self.only_kind == "metal")
         half_extent = float(np.median(np.asarray(samples["scale"])))
         size = min(SIZES, key=lambda s: abs(np.log(half_extent / SIZES[s])))
-        colour = chromaticity(np.median(reflectance(samples), axis=0))
-        nearest = self.colour_names[int(np.argmin(np.sum((self.colour_albedos - colour) ** 2, axis=1)))]
+        nearest = self.colour_name(chromaticity(np.median(reflectance(samples), axis=0)))
         return {"shape": SHAPES[int(np.argmax(counts))], "shape_probabilities": shape_probabilities.tolist(),
                 "material": kind, "p_metal": metal, "size": size, "half_extent_m": half_extent, "colour": nearest}
 
