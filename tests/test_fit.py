@@ -99,6 +99,20 @@ def test_white_lights_stay_achromatic_while_the_fit_moves_them(tiny_dataset):
         SceneOptConfig(**TINY_FIT, light_colour="warm")
 
 
+def test_the_fit_seed_sets_the_lights_random_start():
+    """fit --seed S: the lights' start (positions and intensities in the light box) is drawn from S; one seed gives
+    one start, another a different one (the fit's local optimum depends on it: docs/notebook.md)."""
+    from mitsuba_p3.fit.scene_opt import initial_globals
+
+    def start(seed):
+        return initial_globals(SceneOptConfig(**TINY_FIT, seed=seed))
+
+    again, other = start(1), start(2)
+    assert np.array_equal(start(1)["light_position"], again["light_position"])
+    assert not np.allclose(again["light_position"], other["light_position"])
+    assert SceneOptConfig().seed == 777
+
+
 def test_reproduce_names_and_checks_the_falloff_of_its_models(tiny_model, tmp_path, monkeypatch):
     """reproduce --light-falloff D fits into data/models/V-falloffD (the paper's world keeps data/models/V) and
     refuses a model folder there that was fitted with another falloff, rather than evaluate in the wrong world;

@@ -84,6 +84,8 @@ def fit(
                                      help="white: achromatic lights, the light's tint left to the fitted colours "
                                           "(chosen on train classes, docs/notebook.md); free: each light an RGB "
                                           "intensity (the paper's)."),
+    seed: int = typer.Option(SceneOptConfig.seed, help="Seed of the lights' random start (positions and "
+                                                      "intensities in the light box)."),
 ) -> None:
     """Training stage: scene optimisation, feature selection and priors -> a fitted-model folder."""
     from ..fit.model import fit_model
@@ -91,7 +93,8 @@ def fit(
 
     config = SceneOptConfig(epochs=epochs, material_passes=material_passes, global_passes=global_passes,
                             learning_rate=learning_rate, shadows=shadows, light_radius=light_radius,
-                            light_falloff=light_falloff, observation=observation, light_colour=light_colour)
+                            light_falloff=light_falloff, observation=observation, light_colour=light_colour,
+                            seed=seed)
     # one bar named by the stage; written to a file (a background fit's log) it prints plain lines
     bar, track_stage = phase_progress_bar("fit")
 
