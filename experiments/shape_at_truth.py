@@ -24,7 +24,8 @@ log likelihood at the truth under ``--noise`` (the default's noise unless given;
 better of the least-squares material and the class's fitted material) beside the SMC's
 log evidence and best particle: a true shape that wins at the truth but whose evidence
 falls far below its likelihood there is a run that missed the pose; a wrong shape whose
-best particle beats the truth is the likelihood's own preference.
+best particle beats the truth is the likelihood's own preference. The summary then adds, for each of the
+three figures, the true shape's margin over the best wrong shape (median, least, images it leads in).
 """
 from __future__ import annotations
 
@@ -62,6 +63,7 @@ def main() -> None:
     start_material = {"colour": np.full(3, 0.5, np.float32), "ambient": np.float32(0.3),
                       "diffuse": np.float32(0.5), "specular": np.float32(0.2)}
     wins, margins, per_shape = [], [], {shape: [] for shape in SHAPES}
+    smc_margins = {"log_likelihood_at_truth": [], "smc_max_log_likelihood": [], "smc_log_evidence": []}
     shots = [s for s in dataset.split(args.split) if args.size in (None, s.cls.size)
              and (args.classes is None or s.class_name in args.classes.split(","))]
     for shot in shots[::args.every]:
@@ -77,7 +79,10 @@ def main() -> None:
             materials.append(best[1])
         errors = np.array(errors)
         if args.smc:
-            print(json.dumps(compare_smc(fitted, dataset, shot, observed, materials, args.noise)), flush=True)
+            row = compare_smc(fitted, dataset, shot, observed, materials, args.noise)
+            print(json.dumps(row), flush=True)
+            for key, values in smc_margins.items():
+                values.append(true_shape_margin(row, shot.cls.shape, key))
         right = bool(errors.argmin() == SHAPES.index(shot.cls.shape))
         wins.append(right)
         per_shape[shot.cls.shape].append(right)
@@ -88,7 +93,21 @@ def main() -> None:
                       "true_shape_lowest_error": float(np.mean(wins)),
                       "per_true_shape": {s: [int(sum(v)), len(v)] for s, v in per_shape.items()},
                       "median_margin_squared_error": margin,
-                      "median_margin_nats": margin * noise.power / (2 * sigma ** 2)}, indent=2))
+                      "median_margin_nats": margin * noise.power / (2 * sigma ** 2),
+                      **({"smc_true_shape_margin_nats": {key: margin_summary(values) for key, values in smc_margins.items()}}
+                         if args.smc else {})}, indent=2))
+
+
+def true_shape_margin(row: dict, true_shape: str, key: str) -> float:
+    """The true shape's ``key`` (a :func:`compare_smc` figure) less the best wrong shape's, in nats."""
+    return row[true_shape][key] - max(row[shape][key] for shape in SHAPES if shape != true_shape)
+
+
+def margin_summary(values: list[float]) -> dict:
+    """Median and least margin, and how many images the true shape leads in."""
+    values = np.asarray(values)
+    return {"median": round(float(np.median(values)), 1), "min": round(float(values.min()), 1),
+            "true_shape_ahead": [int((values > 0).sum()), len(values)]}
 
 
 def compare_smc(fitted: FittedModel, dataset, shot, observed: np.ndarray, truths: list[dict],

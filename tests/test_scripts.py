@@ -424,3 +424,15 @@ def test_colour_centres_from_posteriors_leave_the_held_out_class_out():
     out = module.held_out_centres(rules, materials, points, "small-red-rubber-sphere")
     np.testing.assert_allclose(out.colour_albedos[0], [0.5, 0.3, 0.2])
     np.testing.assert_allclose(rules.colour_albedos[0], [0.6, 0.2, 0.2])       # the rules given are not changed
+
+
+def test_shape_at_truth_margins_are_the_true_shape_less_the_best_wrong_one():
+    """experiments/shape_at_truth.py --smc: a true shape behind the best wrong one has a negative margin, and the
+    summary counts only the images it leads in."""
+    probe = load_script("shape_at_truth")
+    rows = [{"sphere": {"x": 10.0}, "cube": {"x": 4.0}, "cylinder": {"x": 7.0}},
+            {"sphere": {"x": 1.0}, "cube": {"x": 3.0}, "cylinder": {"x": -2.0}}]
+    margins = [probe.true_shape_margin(row, "sphere", "x") for row in rows]
+    assert margins == [3.0, -2.0]
+    assert probe.true_shape_margin(rows[1], "cube", "x") == 2.0
+    assert probe.margin_summary(margins) == {"median": 0.5, "min": -2.0, "true_shape_ahead": [1, 2]}
