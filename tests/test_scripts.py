@@ -436,3 +436,13 @@ def test_shape_at_truth_margins_are_the_true_shape_less_the_best_wrong_one():
     assert margins == [3.0, -2.0]
     assert probe.true_shape_margin(rows[1], "cube", "x") == 2.0
     assert probe.margin_summary(margins) == {"median": 0.5, "min": -2.0, "true_shape_ahead": [1, 2]}
+
+
+def test_fit_starts_keep_the_default_seed_in_the_named_folder():
+    """experiments/compare_fit_starts.py: the default start (777) is the folder named, every other seed a sibling
+    ``NAME-sSEED``, so the default fit is read rather than refitted."""
+    from pathlib import Path
+
+    probe = load_script("compare_fit_starts")
+    assert probe.start_folder(Path("data/models/studio-white"), 777) == Path("data/models/studio-white")
+    assert probe.start_folder(Path("data/models/studio-white"), 2) == Path("data/models/studio-white-s2")
