@@ -39,14 +39,12 @@ def start_folder(out: Path, seed: int) -> Path:
 def start_figures(folder: Path) -> dict:
     """The train figures of one fitted start (module docstring)."""
     model = FittedModel(folder)
-    scene = model.info["stages"]["scene"]
-    noise = json.loads((folder / "noise.json").read_text())
-    lights = np.load(folder / "scene.npz")["light_intensity"]
+    scene, noise = model.info["stages"]["scene"], model.info["stages"]["noise"]
     return {"model": str(folder), "seed": scene["config"]["seed"], "light_colour": scene["config"]["light_colour"],
             "train_mse": scene["final_mean_squared_error"],
-            "fields_log_likelihood_per_pixel": noise["figures"]["fields"]["log_likelihood_per_pixel"],
-            "object_outlier": noise["model"]["object_outlier"],
-            "light_intensity": np.round(lights.mean(axis=1), 3).tolist()}
+            "fields_log_likelihood_per_pixel": noise["fields"]["log_likelihood_per_pixel"],
+            "object_outlier": model.noise.object_outlier,
+            "light_intensity": [round(float(np.mean(light.intensity)), 3) for light in model.scene().lights]}
 
 
 def main() -> None:
@@ -60,7 +58,7 @@ def main() -> None:
     rows = []
     for seed in (int(s) for s in args.seeds.split(",")):
         folder = start_folder(args.out, seed)
-        if not (folder / "noise.json").is_file():
+        if not (folder / "noise.json").is_file():   # the last stage: a finished fit
             fit_model(args.dataset, folder, scene_config=SceneOptConfig(light_colour=args.light_colour, seed=seed))
         rows.append(start_figures(folder))
         print(json.dumps(rows[-1]), flush=True)
