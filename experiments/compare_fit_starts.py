@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mitsuba_p3.fit.model import FittedModel, fit_model
+from mitsuba_p3.fit.model import FittedModel, fit_model, start_figures as train_figures
 from mitsuba_p3.fit.scene_opt import SceneOptConfig
 
 
@@ -39,10 +39,8 @@ def start_folder(out: Path, seed: int) -> Path:
 def start_figures(folder: Path) -> dict:
     """The train figures of one fitted start (module docstring)."""
     model = FittedModel(folder)
-    scene, noise = model.info["stages"]["scene"], model.info["stages"]["noise"]
-    return {"model": str(folder), "seed": scene["config"]["seed"], "light_colour": scene["config"]["light_colour"],
-            "train_mse": scene["final_mean_squared_error"],
-            "fields_log_likelihood_per_pixel": noise["fields"]["log_likelihood_per_pixel"],
+    return {"model": str(folder), **train_figures(model),
+            "light_colour": model.info["stages"]["scene"]["config"]["light_colour"],
             "object_outlier": model.noise.object_outlier,
             "light_intensity": [round(float(np.mean(light.intensity)), 3) for light in model.scene().lights]}
 

@@ -113,6 +113,36 @@ def test_the_fit_seed_sets_the_lights_random_start():
     assert SceneOptConfig().seed == 777
 
 
+def test_several_starts_keep_the_one_the_noise_model_explains_best(tiny_dataset, tmp_path):
+    """fit --seed 1,2: each start is fitted into starts/seed-S; the model keeps the start with the highest train
+    log likelihood under its fitted shading fields (its files and figures), lists both, and a second call reads the
+    finished starts instead of refitting them."""
+    out = tmp_path / "multi"
+    model = fit_model(tiny_dataset, out, stages=("scene", "noise"), scene_config=SceneOptConfig(**TINY_FIT),
+                      seeds=[1, 2])
+    starts = model.info["stages"]["scene"]["starts"]
+    scores = {row["seed"]: row["fields_log_likelihood_per_pixel"] for row in starts["figures"]}
+    assert sorted(scores) == [1, 2] and starts["kept"] == max(scores, key=scores.get)
+    kept = out / "starts" / f"seed-{starts['kept']}"
+    for name in ("scene.npz", "materials.json", "noise.json"):
+        assert (out / name).read_bytes() == (kept / name).read_bytes()
+    assert model.info["stages"]["scene"]["config"]["seed"] == starts["kept"]
+    assert model.info["stages"]["noise"] == FittedModel(kept).info["stages"]["noise"]
+    # the other start is a different world
+    other = FittedModel(out / "starts" / f"seed-{3 - starts['kept']}")
+    assert not np.allclose(other.globals["light_position"], model.globals["light_position"])
+
+    stamp = (kept / "scene.npz").stat().st_mtime_ns
+    fit_model(tiny_dataset, out, stages=("scene",), scene_config=SceneOptConfig(**TINY_FIT), seeds=[1, 2])
+    assert (kept / "scene.npz").stat().st_mtime_ns == stamp
+
+
+def test_cli_fit_refuses_a_seed_that_is_not_a_number(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "mitsuba_p3.cli", "fit", str(tmp_path), "--out", str(tmp_path / "m"),
+                             "--seed", "1,two"], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 2 and result.stderr.startswith("error:") and "--seed" in result.stderr
+
+
 def test_reproduce_names_and_checks_the_falloff_of_its_models(tiny_model, tmp_path, monkeypatch):
     """reproduce --light-falloff D fits into data/models/V-falloffD (the paper's world keeps data/models/V) and
     refuses a model folder there that was fitted with another falloff, rather than evaluate in the wrong world;

@@ -84,17 +84,27 @@ def fit(
                                      help="white: achromatic lights, the light's tint left to the fitted colours "
                                           "(chosen on train classes, docs/notebook.md); free: each light an RGB "
                                           "intensity (the paper's)."),
-    seed: int = typer.Option(SceneOptConfig.seed, help="Seed of the lights' random start (positions and "
-                                                      "intensities in the light box)."),
+    seed: str = typer.Option(str(SceneOptConfig.seed), help="Seed of the lights' random start (positions and "
+                                                           "intensities in the light box); several, comma-"
+                                                           "separated (777,1,2,3): fit from each and keep the "
+                                                           "start whose train residuals the fitted noise model "
+                                                           "explains best (each start's figures in model.json)."),
 ) -> None:
     """Training stage: scene optimisation, feature selection and priors -> a fitted-model folder."""
+    from ..errors import FitError
     from ..fit.model import fit_model
     from ..fit.scene_opt import SceneOptConfig
 
+    try:
+        seeds = [int(s) for s in seed.split(",") if s.strip()]
+    except ValueError:
+        seeds = []
+    if not seeds:
+        raise FitError(f"--seed must be one integer or several, comma-separated (777,1,2,3), got {seed!r}")
     config = SceneOptConfig(epochs=epochs, material_passes=material_passes, global_passes=global_passes,
                             learning_rate=learning_rate, shadows=shadows, light_radius=light_radius,
                             light_falloff=light_falloff, observation=observation, light_colour=light_colour,
-                            seed=seed)
+                            seed=seeds[0])
     # one bar named by the stage; written to a file (a background fit's log) it prints plain lines
     bar, track_stage = phase_progress_bar("fit")
 
@@ -103,7 +113,7 @@ def fit(
 
     with bar:
         model = fit_model(dataset_dir, out, [s.strip() for s in stages.split(",") if s.strip()],
-                          scene_config=config, channels=channels, progress=track)
+                          scene_config=config, channels=channels, progress=track, seeds=seeds)
     summary = {stage: {k: v for k, v in figures.items() if k != "config"}
                for stage, figures in model.info["stages"].items()}
     typer.echo(json.dumps({"model": str(out), **summary}, indent=2))

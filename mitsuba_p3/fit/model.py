@@ -24,6 +24,14 @@ noise_spectrum.npz     the spectral noise form: the residuals' power spectrum pe
 Stages: ``scene`` (scene optimisation), ``features``, ``priors`` and ``noise``
 (each needs scene). Each writes its files atomically and then records
 itself in model.json, so a stage can be re-run alone.
+
+Several starts (``fit --seed 777,1,2,3``): the scene fit is a local optimisation from a random start
+of the lights, and starts end in different worlds. Each start is fitted (scene and noise stages) into
+``starts/seed-S/`` and the model keeps the start whose train residuals its fitted noise model explains
+best (the highest log likelihood per pixel under the shading fields, the density the posterior
+scores with); model.json's scene stage lists every start's figures. The fit's own objective (the
+squared error) is not the rule: the start it prefers can be the one whose posteriors read worse
+(docs/notebook.md, "The fit's start, not white lights, loses studio's small spheres").
 """
 from __future__ import annotations
 
@@ -33,7 +41,8 @@ import json
 import time
 import zipfile
 from contextlib import contextmanager
-from dataclasses import asdict
+import shutil
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -52,7 +61,11 @@ MODEL_VERSION = 1
 STAGES = ("scene", "features", "priors", "noise")
 # the files of a model folder (any of them marks a folder as a fit's own, e.g. one killed before model.json)
 MODEL_FILES = ("model.json", "scene.npz", "scene.xml", "snapshots.npz", "pattern.png", "materials.json",
-               "loss_curve.csv", "channel_losses.npz", "features.json", "priors.json", "noise.json", SPECTRUM_FILE, "figures")
+               "loss_curve.csv", "channel_losses.npz", "features.json", "priors.json", "noise.json", SPECTRUM_FILE,
+               "figures", "starts")
+# what the scene and noise stages write: the files a kept start brings into the model folder
+START_FILES = ("scene.npz", "scene.xml", "pattern.png", "materials.json", "loss_curve.csv", "snapshots.npz",
+               "noise.json", SPECTRUM_FILE)
 
 
 class FittedModel:
@@ -257,21 +270,66 @@ def empty_render(model: FittedModel, height: int, width: int, shadows: bool) -> 
 def fit_model(dataset_dir: str | Path, out: str | Path, stages: Sequence[str] = STAGES,
               scene_config: SceneOptConfig | None = None, channels: int = 3,
               prior_config: PriorConfig | None = None,
-              progress: Callable[[str, int, int, float], None] | None = None) -> FittedModel:
-    """Run the training ``stages`` on a data set's train split and write the model folder ``out``."""
+              progress: Callable[[str, int, int, float], None] | None = None,
+              seeds: Sequence[int] | None = None) -> FittedModel:
+    """Run the training ``stages`` on a data set's train split and write the model folder ``out``.
+
+    ``seeds``: the lights' starts to fit (default: ``scene_config.seed`` alone); with more than one,
+    the scene stage keeps the start the fitted noise model explains best (module docstring)."""
     unknown = set(stages) - set(STAGES)
     if unknown:
         raise FitError(f"unknown stage(s) {sorted(unknown)}; choose from {', '.join(STAGES)}")
     if not stages:
         raise FitError(f"no stage to run: name at least one of {', '.join(STAGES)} (e.g. --stages noise)")
     scene_config = scene_config or SceneOptConfig()
+    seeds = list(dict.fromkeys(seeds)) if seeds else [scene_config.seed]
     dataset = load_dataset(dataset_dir, resolution=tuple(scene_config.resolution))
     root = claim_output_folder(out, MODEL_FILES, "mitsuba-p3 fit")
     # held while the stages write: a second fit, or an infer reading the folder, is refused meanwhile
     with folder_lock(root, "mitsuba-p3 fit"):
         _check_same_dataset(root, dataset)
+        if "scene" in stages and len(seeds) > 1:
+            _keep_best_start(root, dataset, seeds, scene_config, progress)
+            stages = [s for s in stages if s not in ("scene", "noise")]   # both are the kept start's
         _run_stages(root, dataset, stages, scene_config, channels, prior_config, progress)
     return FittedModel(root)
+
+
+def start_figures(model: FittedModel) -> dict:
+    """One start's train figures: its seed, the fit's squared error, and the log likelihood per pixel of
+    its train residuals under its fitted shading fields (the rule's score)."""
+    scene, noise = model.info["stages"]["scene"], model.info["stages"]["noise"]
+    return {"seed": scene["config"]["seed"], "train_mse": scene["final_mean_squared_error"],
+            "fields_log_likelihood_per_pixel": noise["fields"]["log_likelihood_per_pixel"]}
+
+
+def _recorded_stages(root: Path) -> dict:
+    """The stages ``root/model.json`` records (none for a folder without one)."""
+    path = root / "model.json"
+    return json.loads(path.read_text()).get("stages", {}) if path.is_file() else {}
+
+
+def _keep_best_start(root: Path, dataset: Dataset, seeds: Sequence[int], scene_config: SceneOptConfig,
+                     progress) -> None:
+    """Fit the scene and noise stages from every seed into ``root/starts/seed-S`` (a finished start is
+    read, not refitted: a killed fit resumes), then copy the best start's files into ``root`` and record
+    every start's figures in its scene stage."""
+    rows = []
+    for seed in seeds:
+        folder = root / "starts" / f"seed-{seed}"
+        if "noise" not in _recorded_stages(folder):       # the last stage: a finished start
+            folder.mkdir(parents=True, exist_ok=True)
+            _run_stages(folder, dataset, ("scene", "noise"), replace(scene_config, seed=seed), 0, None, progress)
+        rows.append(start_figures(FittedModel(folder)))
+    best = max(rows, key=lambda row: row["fields_log_likelihood_per_pixel"])
+    kept = FittedModel(root / "starts" / f"seed-{best['seed']}")
+    for name in START_FILES:
+        if (kept.root / name).is_file():
+            shutil.copyfile(kept.root / name, root / name)
+    scene = dict(kept.info["stages"]["scene"])
+    scene["starts"] = {"rule": "highest fields_log_likelihood_per_pixel", "kept": best["seed"], "figures": rows}
+    _record(root, dataset, "scene", scene)
+    _record(root, dataset, "noise", kept.info["stages"]["noise"])
 
 
 def _run_stages(root: Path, dataset: Dataset, stages: Sequence[str], scene_config: SceneOptConfig,
