@@ -135,6 +135,11 @@ def test_several_starts_keep_the_one_the_noise_model_explains_best(tiny_dataset,
     stamp = (kept / "scene.npz").stat().st_mtime_ns
     fit_model(tiny_dataset, out, stages=("scene",), scene_config=SceneOptConfig(**TINY_FIT), seeds=[1, 2])
     assert (kept / "scene.npz").stat().st_mtime_ns == stamp
+    # other settings: the starts are refitted, not read
+    fit_model(tiny_dataset, out, stages=("scene",), scene_config=SceneOptConfig(**{**TINY_FIT, "epochs": 1}),
+              seeds=[1, 2])
+    assert (kept / "scene.npz").stat().st_mtime_ns != stamp
+    assert FittedModel(out).info["stages"]["scene"]["config"]["epochs"] == 1
 
 
 def test_cli_fit_refuses_a_seed_that_is_not_a_number(tmp_path):

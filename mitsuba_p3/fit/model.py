@@ -303,23 +303,24 @@ def start_figures(model: FittedModel) -> dict:
             "fields_log_likelihood_per_pixel": noise["fields"]["log_likelihood_per_pixel"]}
 
 
-def _recorded_stages(root: Path) -> dict:
-    """The stages ``root/model.json`` records (none for a folder without one)."""
-    path = root / "model.json"
-    return json.loads(path.read_text()).get("stages", {}) if path.is_file() else {}
+def _finished_start(folder: Path, config: SceneOptConfig) -> bool:
+    """Whether ``folder`` holds a start fitted to the end (its noise stage) under ``config``."""
+    path = folder / "model.json"
+    stages = json.loads(path.read_text()).get("stages", {}) if path.is_file() else {}
+    return "noise" in stages and stages.get("scene", {}).get("config") == json.loads(json.dumps(asdict(config)))
 
 
 def _keep_best_start(root: Path, dataset: Dataset, seeds: Sequence[int], scene_config: SceneOptConfig,
                      progress) -> None:
-    """Fit the scene and noise stages from every seed into ``root/starts/seed-S`` (a finished start is
-    read, not refitted: a killed fit resumes), then copy the best start's files into ``root`` and record
-    every start's figures in its scene stage."""
+    """Fit the scene and noise stages from every seed into ``root/starts/seed-S`` (a start finished
+    under the same settings is read, not refitted: a killed fit resumes), then copy the best start's
+    files into ``root`` and record every start's figures in its scene stage."""
     rows = []
     for seed in seeds:
-        folder = root / "starts" / f"seed-{seed}"
-        if "noise" not in _recorded_stages(folder):       # the last stage: a finished start
+        folder, config = root / "starts" / f"seed-{seed}", replace(scene_config, seed=seed)
+        if not _finished_start(folder, config):
             folder.mkdir(parents=True, exist_ok=True)
-            _run_stages(folder, dataset, ("scene", "noise"), replace(scene_config, seed=seed), 0, None, progress)
+            _run_stages(folder, dataset, ("scene", "noise"), config, 0, None, progress)
         rows.append(start_figures(FittedModel(folder)))
     best = max(rows, key=lambda row: row["fields_log_likelihood_per_pixel"])
     kept = FittedModel(root / "starts" / f"seed-{best['seed']}")
