@@ -4,7 +4,7 @@ An evaluation run caches the posteriors of the first train images of every class
 spread's; ``experiments/sample_train_shots.py`` samples more). This scores them as
 ``mitsuba-p3 evaluate`` scores the test split (:func:`~mitsuba_p3.evaluate.metrics.attribute_recovery`,
 with the rule learnt from the fit's materials, the one ``mitsuba-p3 infer`` uses) and lists the
-misread images, so two fits or two samplers are compared on train classes only. Several runs, each
+misread images and the island gaps, so two fits or two samplers are compared on train classes only. Several runs, each
 with its own model, print side by side:
 
     python experiments/score_train_attributes.py data/fsclvr-lo \\
@@ -15,6 +15,8 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+
+import numpy as np
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.evaluate.jobs import cached_train_posteriors
@@ -40,7 +42,17 @@ def score(dataset, run: Path, model: Path, likelihood: str, shots: int | None, o
         if wrong:
             misread.append(f"{r['class']}#{r['query']}: " + ", ".join(wrong))
     return {"model": str(model), **{k: round(v, 3) if isinstance(v, float) else v for k, v in summary.items()},
-            "misread": misread}
+            **gap_summary([p.island_gap for p in cached.values()]), "misread": misread}
+
+
+def gap_summary(gaps) -> dict:
+    """The island gap (the leading hypothesis's runs' log-evidence spread, nats) over the posteriors that
+    have one: median, 90th percentile, and how many exceed 10 nats (two runs of one image disagreeing)."""
+    gaps = np.asarray([g for g in gaps if np.isfinite(g)], np.float64)
+    if not gaps.size:
+        return {}
+    return {"island_gap_median": round(float(np.median(gaps)), 2),
+            "island_gap_p90": round(float(np.percentile(gaps, 90)), 2), "island_gap_over_10": int(np.sum(gaps > 10))}
 
 
 def main() -> None:

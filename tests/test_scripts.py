@@ -446,3 +446,13 @@ def test_fit_starts_keep_the_default_seed_in_the_named_folder():
     probe = load_script("compare_fit_starts")
     assert probe.start_folder(Path("data/models/studio-white"), 777) == Path("data/models/studio-white")
     assert probe.start_folder(Path("data/models/studio-white"), 2) == Path("data/models/studio-white-s2")
+
+
+def test_train_scores_summarise_the_island_gaps_they_have():
+    """experiments/score_train_attributes.py: median, p90 and the count over 10 nats of the finite island gaps
+    (an MH posterior has none); no gaps, no figures."""
+    probe = load_script("score_train_attributes")
+    summary = probe.gap_summary([0.5, 1.0, float("nan"), 2.0, 30.0])
+    assert summary["island_gap_median"] == 1.5 and summary["island_gap_over_10"] == 1
+    assert 2.0 < summary["island_gap_p90"] < 30.0
+    assert probe.gap_summary([float("nan")]) == {}
