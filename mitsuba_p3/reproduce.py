@@ -105,7 +105,7 @@ def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] 
     ``resolution``, (H, W), or the benchmark's default; fitted with the ``observation`` model and the lights'
     ``light_falloff`` and ``light_colour``, in the folder :func:`model_name` names)."""
     from .benchmarks.generate import generate
-    from .fit.model import FittedModel, fit_model
+    from .fit.model import DEFAULT_STARTS, FittedModel, fit_model
 
     folder = data / variant
     generate(variant, folder, resolution=resolution,
@@ -118,6 +118,7 @@ def prepare(data: Path, variant: str, progress: Callable[[str, int, int], None] 
         fit_model(data / source, model, scene_config=SceneOptConfig(observation=observation,
                                                                     light_falloff=light_falloff,
                                                                     light_colour=light_colour),
+                  seeds=DEFAULT_STARTS,
                   progress=(lambda stage, d, t, _: progress(f"{source}: fit {stage}", d, t)) if progress else None)
         return folder, model
     # a folder already there (a user's own fit, or an earlier call's) must be the world asked for

@@ -869,6 +869,37 @@ def test_material_rule_learnt_from_train_posteriors_sees_what_posteriors_say():
     assert fit_rules.with_material_from_posteriors(metals, ["metal"] * 6) is fit_rules
 
 
+def test_colour_centres_learnt_from_train_posteriors_follow_a_tinted_fit():
+    """A fit whose brown metal came out reddish names a brown posterior red; with each centre moved to its colour
+    and kind's train posteriors the brown posterior is brown again, the centres of kinds without posteriors and
+    the label RGB's stay, and the record a run saves carries the centres to infer --material-rule."""
+    from mitsuba_p3.fit.attributes import AttributeRules
+
+    def material(colour):
+        return {"colour": list(colour), "ambient": 0.4, "diffuse": 0.6, "specular": 0.3, "shininess": 4.0}
+
+    def posterior(colour, n=30):
+        return {"class": np.zeros(n, int), "scale": np.full((n, 3), 0.03), "colour": np.tile(colour, (n, 1)),
+                "ambient": np.full((n, 1), 0.4), "diffuse": np.full((n, 1), 0.6), "specular": np.full((n, 1), 0.3),
+                "shininess": np.full((n, 1), 4.0)}
+
+    brown, red = (0.50, 0.30, 0.15), (0.80, 0.15, 0.12)
+    fit_rules = AttributeRules.from_materials({"brown-metal": material((0.6, 0.6, 0.05)),   # tinted by the fit
+                                               "red-metal": material(red)}, {"green": (29, 105, 20)})
+    metal_brown = posterior((0.58, 0.28, 0.12))
+    assert fit_rules.decide(metal_brown)["colour"] == "red"
+    learnt = fit_rules.with_colours_from_posteriors([posterior((0.57, 0.29, 0.13)), posterior((0.59, 0.27, 0.12)),
+                                                     posterior((0.82, 0.14, 0.11))], ["brown", "brown", "red"],
+                                                    ["metal", "metal", "metal"])
+    assert learnt.decide(metal_brown)["colour"] == "brown" and learnt.decide(posterior(red))["colour"] == "red"
+    assert np.array_equal(learnt.colour_albedos[-1], fit_rules.colour_albedos[-1])        # green: its label RGB
+    untouched = fit_rules.with_colours_from_posteriors([posterior(brown)], ["brown"], ["rubber"])
+    assert np.array_equal(untouched.colour_albedos, fit_rules.colour_albedos)
+    read = fit_rules.with_material_record(json.loads(json.dumps(learnt.material_record())))
+    assert read.decide(metal_brown)["colour"] == "brown"
+    assert np.allclose(read.colour_albedos, learnt.colour_albedos) and read.colour_kinds == learnt.colour_kinds
+
+
 def test_material_rule_with_saturation_tells_kinds_whose_weights_agree():
     """Train posteriors whose Phong weights are alike but whose colours are pale (metals) or vivid
     (rubbers): the rule on the weights alone cannot tell them apart, the rule with the reflectance's

@@ -10,6 +10,7 @@ import typer
 
 from ..concepts import DistanceConfig
 from ..evaluate.config import PRESET
+from ..fit.model import DEFAULT_STARTS
 from ..fit.scene_opt import SceneOptConfig
 from ..infer.likelihood import DEFAULT_NOISE
 from ..infer.mcmc import SamplerConfig
@@ -84,11 +85,11 @@ def fit(
                                      help="white: achromatic lights, the light's tint left to the fitted colours "
                                           "(chosen on train classes, docs/notebook.md); free: each light an RGB "
                                           "intensity (the paper's)."),
-    seed: str = typer.Option(str(SceneOptConfig.seed), help="Seed of the lights' random start (positions and "
-                                                           "intensities in the light box); several, comma-"
-                                                           "separated (777,1,2,3): fit from each and keep the "
-                                                           "start whose train residuals the fitted noise model "
-                                                           "explains best (each start's figures in model.json)."),
+    seed: str = typer.Option(",".join(map(str, DEFAULT_STARTS)),
+                             help="Seeds of the lights' random starts (positions and intensities in the light "
+                                  "box), comma-separated: the scene is fitted from each and the model keeps the "
+                                  "start whose train residuals the fitted noise model explains best (each start "
+                                  "in MODEL/starts/, its figures in model.json); one seed fits one start."),
 ) -> None:
     """Training stage: scene optimisation, feature selection and priors -> a fitted-model folder."""
     from ..errors import FitError

@@ -276,11 +276,21 @@ def rules_with_train_posteriors(rules, dataset: Dataset, run_dir: Path, likeliho
     """The attribute rules with the material kind learnt from the run's cached *train* posteriors
     (:meth:`~mitsuba_p3.fit.attributes.AttributeRules.with_material_from_posteriors`, on
     :data:`MATERIAL_RULE_FEATURES`, or without the misfit when ``misfits`` is None or unavailable),
-    when it holds posteriors of both kinds; else ``rules`` unchanged. Chosen on train classes:
-    learnt from posteriors, the rule beats the one learnt from the fit's materials
-    (``experiments/select_material_rule.py``; docs/notebook.md)."""
-    return rules_learnt_from(rules, cached_train_posteriors(dataset, run_dir, likelihood), dataset.class_labels,
-                             MATERIAL_RULE_FEATURES, misfits)
+    when it holds posteriors of both kinds, and the colour centres moved to those posteriors' (:meth:`~mitsuba_p3.
+    fit.attributes.AttributeRules.with_colours_from_posteriors`). Chosen on train classes: learnt from
+    posteriors, the material rule beats the one learnt from the fit's materials
+    (``experiments/select_material_rule.py``), and the colour centres read every train colour under the
+    fit's kept start where the fit's own centres can be tinted (``experiments/select_colour_centres.py``;
+    docs/notebook.md)."""
+    posteriors = cached_train_posteriors(dataset, run_dir, likelihood)
+    learnt = rules_learnt_from(rules, posteriors, dataset.class_labels, MATERIAL_RULE_FEATURES, misfits)
+    labels = dataset.class_labels
+    pairs = [(name, post) for name, group in posteriors.items() for post in group.values()]
+    if not pairs:
+        return learnt
+    return learnt.with_colours_from_posteriors([post.program.samples for _, post in pairs],
+                                               [labels[name].colour for name, _ in pairs],
+                                               [labels[name].material for name, _ in pairs])
 
 
 def rules_learnt_from(rules, posteriors: dict[str, dict[int, CachedPosterior]], labels: dict,

@@ -24,7 +24,10 @@ metal sphere?". :class:`AttributeRules` turns posterior samples into those words
   and the light (a metal's fitted reflectance is half a rubber's of the same
   colour), while its hue names the colour; and each material on its own, not a
   colour's mean over rubber and metal, which lies between the two. A colour
-  never seen in training falls back to its label RGB.
+  never seen in training falls back to its label RGB. An evaluation moves each
+  centre to the mean chromaticity of its colour and kind's train posteriors
+  (:meth:`AttributeRules.with_colours_from_posteriors`), as it learns the
+  material rule from them.
 
 Every rule is fitted on train classes or fixed by the protocol; nothing is tuned
 on test images.
@@ -98,6 +101,7 @@ class AttributeRules:
     colour_names: list[str]                  # per reference: its colour name
     colour_albedos: np.ndarray               # (references, 3) chromaticities of the train materials
     material_features: str = "weights"       # the material model's inputs (MATERIAL_FEATURES)
+    colour_kinds: list | None = None         # per reference: its material kind (None: a label RGB's colour)
 
     @classmethod
     def from_materials(cls, materials: dict[str, dict], extra_colours: dict[str, tuple] | None = None
@@ -111,11 +115,34 @@ class AttributeRules:
             model = material_classifier(_material_features(materials[k] for k in keys), kinds)
         names = [key.rsplit("-", 1)[0] for key in keys]
         centres = [chromaticity(reflectance(materials[key])) for key in keys]
+        reference_kinds: list = list(kinds)
         for name, rgb in (extra_colours or {}).items():   # colours the fit never saw: their label RGB (0-255)
             if name not in names:
                 names.append(name)
                 centres.append(chromaticity(np.asarray(rgb, np.float64)))
-        return cls(model, only, names, np.array(centres, np.float64))
+                reference_kinds.append(None)
+        return cls(model, only, names, np.array(centres, np.float64), colour_kinds=reference_kinds)
+
+    def with_colours_from_posteriors(self, samples: list[dict], colours: list[str], kinds: list[str]
+                                     ) -> "AttributeRules":
+        """The same rules with each fitted material's colour centre moved to the mean chromaticity of
+        the median reflectances of the *train* posteriors of its colour and kind (``samples`` with their
+        labelled ``colours`` and ``kinds``), as the material rule is learnt from posteriors: the centre
+        is then the kind of input it is compared with (a start of the fit can tint its materials: the
+        notebook's "Keep the start the noise model explains best"). A centre without such posteriors,
+        or a label RGB's, is kept."""
+        from dataclasses import replace
+
+        if self.colour_kinds is None or not (len(samples) == len(colours) == len(kinds)):
+            raise ValueError("colour centres need every posterior's colour and kind, and rules from a fit")
+        points: dict[tuple, list] = {}
+        for sample, colour, kind in zip(samples, colours, kinds):
+            points.setdefault((colour, kind), []).append(chromaticity(np.median(reflectance(sample), axis=0)))
+        centres = np.array(self.colour_albedos, np.float64)
+        for i, key in enumerate(zip(self.colour_names, self.colour_kinds)):
+            if key[1] is not None and key in points:
+                centres[i] = np.mean(points[key], axis=0)
+        return replace(self, colour_albedos=centres)
 
     def with_material_from_posteriors(self, samples: list[dict], kinds: list[str], features: str = "weights",
                                       misfits: list[float] | None = None) -> "AttributeRules":
@@ -135,10 +162,13 @@ class AttributeRules:
                        material_model=material_classifier(_material_features(rows, features), kinds))
 
     def material_record(self) -> dict:
-        """The material rule as JSON-ready numbers (:meth:`with_material_record` reads it back)."""
+        """The material rule and the colour centres as JSON-ready numbers (:meth:`with_material_record`
+        reads them back)."""
         return {"format": "mitsuba-p3-material-rule", "features": self.material_features, "kinds": list(KINDS),
                 "only_kind": self.only_kind,
-                "model": None if self.material_model is None else asdict(self.material_model)}
+                "model": None if self.material_model is None else asdict(self.material_model),
+                "colour_centres": {"names": list(self.colour_names), "kinds": list(self.colour_kinds or []),
+                                   "chromaticities": np.asarray(self.colour_albedos).tolist()}}
 
     def with_material_record(self, record: dict) -> "AttributeRules":
         """The same rules with the material rule of :meth:`material_record` (e.g. one ``evaluate`` learnt
@@ -151,9 +181,14 @@ class AttributeRules:
             raise ValueError(f"a material rule for kinds {record.get('kinds')} on features "
                              f"{record.get('features')!r}; this version reads {list(KINDS)} on {MATERIAL_FEATURES}")
         model = record.get("model")
-        return replace(self, material_features=record["features"], only_kind=record.get("only_kind"),
-                       material_model=None if model is None else MaterialModel(
-                           tuple(model["mean"]), tuple(model["scale"]), tuple(model["coef"]), float(model["intercept"])))
+        rules = replace(self, material_features=record["features"], only_kind=record.get("only_kind"),
+                        material_model=None if model is None else MaterialModel(
+                            tuple(model["mean"]), tuple(model["scale"]), tuple(model["coef"]), float(model["intercept"])))
+        centres = record.get("colour_centres")      # absent in records written before 2026-11-29
+        if centres:
+            rules = replace(rules, colour_names=list(centres["names"]), colour_kinds=list(centres["kinds"]) or None,
+                            colour_albedos=np.asarray(centres["chromaticities"], np.float64))
+        return rules
 
     @property
     def reads_misfit(self) -> bool:
