@@ -3,12 +3,13 @@
 The colour rule (:class:`~mitsuba_p3.fit.attributes.AttributeRules`) names a posterior's colour
 by the nearest *centre*, a chromaticity per train colour and material kind. Two sources:
 
-- ``fit``: the chromaticity of each fitted material (``materials.json``), the rule every
-  command uses now;
+- ``fit``: the chromaticity of each fitted material (``materials.json``), the rule of
+  ``infer`` without ``--material-rule``;
 - ``posteriors``: the mean chromaticity of the train posteriors' median reflectances of
   that colour and kind, so the rule is learnt on the kind of input it is applied to, as the
-  material rule learnt on posteriors is. A colour and kind held by the held-out class only
-  keeps its fit centre.
+  material rule learnt on posteriors is; ``evaluate``'s rule since the twenty-sixth session
+  (:meth:`~mitsuba_p3.fit.attributes.AttributeRules.with_colours_from_posteriors`). A colour
+  and kind held by the held-out class only keeps its fit centre.
 
 Each train class is held out in turn: the ``posteriors`` centres are made without its
 posteriors and scored on them (the ``fit`` centres are fixed). Prints JSON per run: colour
@@ -22,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -39,39 +39,32 @@ def posterior_chromaticity(posterior) -> np.ndarray:
     return chromaticity(np.median(reflectance(posterior.program.samples), axis=0))
 
 
-def held_out_centres(rules, materials: dict, points: dict[str, list[tuple[str, np.ndarray]]], held_out: str):
-    """``rules`` with each fitted material's centre replaced by the mean chromaticity of the train
-    posteriors of its colour and kind outside class ``held_out`` (``points``: key ``colour-kind`` ->
-    [(class, chromaticity)]); keys without such posteriors keep the fit's centre."""
-    centres = np.array(rules.colour_albedos, np.float64)
-    for i, key in enumerate(materials):
-        others = [c for name, c in points.get(key, []) if name != held_out]
-        if others:
-            centres[i] = np.mean(others, axis=0)
-    return replace(rules, colour_albedos=centres)
+def held_out_centres(rules, posteriors: dict, labels: dict, held_out: str):
+    """``rules`` with the centres learnt as ``evaluate`` learns them
+    (:meth:`~mitsuba_p3.fit.attributes.AttributeRules.with_colours_from_posteriors`) from the train
+    posteriors (class name -> {index: posterior}) of every class but ``held_out``."""
+    pairs = [(name, post) for name, group in posteriors.items() if name != held_out for post in group.values()]
+    return rules.with_colours_from_posteriors([post.program.samples for _, post in pairs],
+                                              [labels[name].colour for name, _ in pairs],
+                                              [labels[name].material for name, _ in pairs])
 
 
 def compare(dataset, run: Path, model: Path, likelihood: str) -> dict:
     """Colour accuracy of both sources on one run's cached train posteriors, each class held out."""
-    fitted = FittedModel(model)
-    rules = rules_for(fitted, dataset)
+    rules = rules_for(FittedModel(model), dataset)
     labels = dataset.class_labels
     posteriors = {name: p for name, p in cached_train_posteriors(dataset, run, likelihood).items() if p}
     if not posteriors:
         raise SystemExit(f"{run} holds no cached train posteriors for {likelihood}")
-    chroma = {name: {i: posterior_chromaticity(p) for i, p in group.items()} for name, group in posteriors.items()}
-    points: dict[str, list] = {}
-    for name, group in chroma.items():
-        key = f"{labels[name].colour}-{labels[name].material}"
-        points.setdefault(key, []).extend((name, c) for c in group.values())
     right = {"fit": 0, "posteriors": 0}
     misread = {"fit": [], "posteriors": []}
     count = 0
-    for name, group in chroma.items():
+    for name, group in posteriors.items():
         truth = labels[name].colour
-        sources = {"fit": rules, "posteriors": held_out_centres(rules, fitted.materials, points, name)}
-        for index, c in group.items():
+        sources = {"fit": rules, "posteriors": held_out_centres(rules, posteriors, labels, name)}
+        for index, post in group.items():
             count += 1
+            c = posterior_chromaticity(post)
             for source, r in sources.items():
                 named = r.colour_name(c)
                 right[source] += named == truth

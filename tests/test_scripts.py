@@ -406,22 +406,31 @@ def test_the_sbc_bias_probe_finds_the_class_whose_ranks_lean():
 
 def test_colour_centres_from_posteriors_leave_the_held_out_class_out():
     """experiments/select_colour_centres.py: a centre becomes the mean of the *other* classes' posterior
-    chromaticities of its colour and kind; a key only the held-out class holds keeps the fit's centre."""
+    chromaticities of its colour and kind (evaluate's rule, the class held out); a key only the held-out class
+    holds keeps the fit's centre, and a colour the fit never saw its label's."""
+    from types import SimpleNamespace
+
     from mitsuba_p3.fit.attributes import AttributeRules
 
     module = load_script("select_colour_centres")
-    materials = {"red-rubber": {}, "brown-rubber": {}}
-    rules = AttributeRules(None, "rubber", ["red", "brown", "blue"], np.array([[0.6, 0.2, 0.2], [0.45, 0.32, 0.23],
-                                                                             [0.2, 0.2, 0.6]]))
-    points = {"red-rubber": [("large-red-rubber-cube", np.array([0.5, 0.3, 0.2])),
-                             ("small-red-rubber-sphere", np.array([0.7, 0.1, 0.2])),
-                             ("small-red-rubber-sphere", np.array([0.7, 0.2, 0.1]))],
-              "brown-rubber": [("large-brown-rubber-cube", np.array([0.5, 0.3, 0.2]))]}
-    out = module.held_out_centres(rules, materials, points, "large-brown-rubber-cube")
+    rules = AttributeRules(None, "rubber", ["red", "brown", "blue"],
+                           np.array([[0.6, 0.2, 0.2], [0.45, 0.32, 0.23], [0.2, 0.2, 0.6]]),
+                           colour_kinds=["rubber", "rubber", None])
+
+    def posterior(chroma, n=5):     # k_a + k_d = 1: the median reflectance's chromaticity is the colour's
+        samples = {"colour": np.tile(chroma, (n, 1)), "ambient": np.full((n, 1), 0.3),
+                   "diffuse": np.full((n, 1), 0.7), "specular": np.full((n, 1), 0.2), "shininess": np.full((n, 1), 4.0)}
+        return SimpleNamespace(program=SimpleNamespace(samples=samples))
+
+    posteriors = {"large-red-rubber-cube": {0: posterior([0.5, 0.3, 0.2])},
+                  "small-red-rubber-sphere": {0: posterior([0.7, 0.1, 0.2]), 1: posterior([0.7, 0.2, 0.1])},
+                  "large-brown-rubber-cube": {0: posterior([0.5, 0.3, 0.2])}}
+    labels = {name: SimpleNamespace(colour=name.split("-")[1], material="rubber") for name in posteriors}
+    out = module.held_out_centres(rules, posteriors, labels, "large-brown-rubber-cube")
     np.testing.assert_allclose(out.colour_albedos[0], [0.633333, 0.2, 0.166667], atol=1e-6)   # all three red
     np.testing.assert_allclose(out.colour_albedos[1], [0.45, 0.32, 0.23])      # only the held-out class: the fit's
     np.testing.assert_allclose(out.colour_albedos[2], [0.2, 0.2, 0.6])         # a colour the fit never saw: its label
-    out = module.held_out_centres(rules, materials, points, "small-red-rubber-sphere")
+    out = module.held_out_centres(rules, posteriors, labels, "small-red-rubber-sphere")
     np.testing.assert_allclose(out.colour_albedos[0], [0.5, 0.3, 0.2])
     np.testing.assert_allclose(rules.colour_albedos[0], [0.6, 0.2, 0.2])       # the rules given are not changed
 
