@@ -40,17 +40,17 @@ from __future__ import annotations
 import csv
 import io
 import json
+import shutil
 import time
 import zipfile
 from contextlib import contextmanager
-import shutil
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
-from ..files import atomic_json, atomic_npz, atomic_write, claim_output_folder, folder_lock
+from ..files import atomic_json, atomic_npz, atomic_path, atomic_write, claim_output_folder, folder_lock
 from ..benchmarks.dataset import Dataset, load_dataset
 from .features import Channel, channel_losses, select_channels
 from .noise import SPECTRUM_FILE, NoiseModel, fit_noise, load_spectra, save_spectra
@@ -330,7 +330,8 @@ def _keep_best_start(root: Path, dataset: Dataset, seeds: Sequence[int], scene_c
     kept = FittedModel(root / "starts" / f"seed-{best['seed']}")
     for name in START_FILES:
         if (kept.root / name).is_file():
-            shutil.copyfile(kept.root / name, root / name)
+            with atomic_path(root / name) as temporary:
+                shutil.copyfile(kept.root / name, temporary)
     scene = dict(kept.info["stages"]["scene"])
     scene["starts"] = {"rule": "highest fields_log_likelihood_per_pixel", "kept": best["seed"], "figures": rows}
     _record(root, dataset, "scene", scene)
