@@ -117,9 +117,10 @@ def test_several_starts_keep_the_one_the_noise_model_explains_best(tiny_dataset,
     """fit --seed 1,2: each start is fitted into starts/seed-S; the model keeps the start with the highest train
     log likelihood under its fitted shading fields (its files and figures), lists both, and a second call reads the
     finished starts instead of refitting them."""
-    out = tmp_path / "multi"
+    out, phases = tmp_path / "multi", set()
     model = fit_model(tiny_dataset, out, stages=("scene", "noise"), scene_config=SceneOptConfig(**TINY_FIT),
-                      seeds=[1, 2])
+                      seeds=[1, 2], progress=lambda phase, *figures: phases.add(phase))
+    assert {"scene (start 1)", "noise (start 2)"} <= phases       # the progress bar names the start it fits
     starts = model.info["stages"]["scene"]["starts"]
     scores = {row["seed"]: row["fields_log_likelihood_per_pixel"] for row in starts["figures"]}
     assert sorted(scores) == [1, 2] and starts["kept"] == max(scores, key=scores.get)

@@ -324,7 +324,9 @@ def _keep_best_start(root: Path, dataset: Dataset, seeds: Sequence[int], scene_c
         folder, config = root / "starts" / f"seed-{seed}", replace(scene_config, seed=seed)
         if not _finished_start(folder, config):
             folder.mkdir(parents=True, exist_ok=True)
-            _run_stages(folder, dataset, ("scene", "noise"), config, 0, None, progress)
+            named = (lambda stage, *figures, seed=seed: progress(f"{stage} (start {seed})", *figures)) \
+                if progress else None
+            _run_stages(folder, dataset, ("scene", "noise"), config, 0, None, named)
         rows.append(start_figures(FittedModel(folder)))
     best = max(rows, key=lambda row: row["fields_log_likelihood_per_pixel"])
     kept = FittedModel(root / "starts" / f"seed-{best['seed']}")
