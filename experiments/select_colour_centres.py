@@ -25,28 +25,18 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
-
 from mitsuba_p3.benchmarks.dataset import load_dataset
-from mitsuba_p3.evaluate.jobs import cached_train_posteriors
-from mitsuba_p3.fit.attributes import chromaticity, reflectance, rules_for
+from mitsuba_p3.evaluate.jobs import cached_train_posteriors, colours_learnt_from
+from mitsuba_p3.fit.attributes import median_chromaticity, rules_for
 from mitsuba_p3.fit.model import FittedModel
 from score_train_attributes import run_specs  # the sibling experiment's --run RUN=MODEL
 
 
-def posterior_chromaticity(posterior) -> np.ndarray:
-    """(3,) the chromaticity of a posterior's median reflectance (what the colour rule reads)."""
-    return chromaticity(np.median(reflectance(posterior.program.samples), axis=0))
-
-
 def held_out_centres(rules, posteriors: dict, labels: dict, held_out: str):
     """``rules`` with the centres learnt as ``evaluate`` learns them
-    (:meth:`~mitsuba_p3.fit.attributes.AttributeRules.with_colours_from_posteriors`) from the train
-    posteriors (class name -> {index: posterior}) of every class but ``held_out``."""
-    pairs = [(name, post) for name, group in posteriors.items() if name != held_out for post in group.values()]
-    return rules.with_colours_from_posteriors([post.program.samples for _, post in pairs],
-                                              [labels[name].colour for name, _ in pairs],
-                                              [labels[name].material for name, _ in pairs])
+    (:func:`~mitsuba_p3.evaluate.jobs.colours_learnt_from`) from the train posteriors (class name ->
+    {index: posterior}) of every class but ``held_out``."""
+    return colours_learnt_from(rules, {name: group for name, group in posteriors.items() if name != held_out}, labels)
 
 
 def compare(dataset, run: Path, model: Path, likelihood: str) -> dict:
@@ -64,7 +54,7 @@ def compare(dataset, run: Path, model: Path, likelihood: str) -> dict:
         sources = {"fit": rules, "posteriors": held_out_centres(rules, posteriors, labels, name)}
         for index, post in group.items():
             count += 1
-            c = posterior_chromaticity(post)
+            c = median_chromaticity(post.program.samples)
             for source, r in sources.items():
                 named = r.colour_name(c)
                 right[source] += named == truth

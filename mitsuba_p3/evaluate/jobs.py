@@ -284,13 +284,18 @@ def rules_with_train_posteriors(rules, dataset: Dataset, run_dir: Path, likeliho
     docs/notebook.md)."""
     posteriors = cached_train_posteriors(dataset, run_dir, likelihood)
     learnt = rules_learnt_from(rules, posteriors, dataset.class_labels, MATERIAL_RULE_FEATURES, misfits)
-    labels = dataset.class_labels
+    return colours_learnt_from(learnt, posteriors, dataset.class_labels)
+
+
+def colours_learnt_from(rules, posteriors: dict[str, dict[int, CachedPosterior]], labels: dict):
+    """``rules`` with the colour centres moved to these train posteriors' (by class name and image index;
+    ``labels`` give each class's colour and kind); unchanged without posteriors."""
     pairs = [(name, post) for name, group in posteriors.items() for post in group.values()]
     if not pairs:
-        return learnt
-    return learnt.with_colours_from_posteriors([post.program.samples for _, post in pairs],
-                                               [labels[name].colour for name, _ in pairs],
-                                               [labels[name].material for name, _ in pairs])
+        return rules
+    return rules.with_colours_from_posteriors([post.program.samples for _, post in pairs],
+                                              [labels[name].colour for name, _ in pairs],
+                                              [labels[name].material for name, _ in pairs])
 
 
 def rules_learnt_from(rules, posteriors: dict[str, dict[int, CachedPosterior]], labels: dict,

@@ -92,6 +92,11 @@ def chromaticity(rgb: np.ndarray) -> np.ndarray:
     return np.where(total > 1e-9, rgb / np.maximum(total, 1e-9), 1.0 / 3.0)
 
 
+
+def median_chromaticity(samples: dict) -> np.ndarray:
+    """(3,) the chromaticity of the posterior samples' median reflectance: what the colour rule reads."""
+    return chromaticity(np.median(reflectance(samples), axis=0))
+
 @dataclass
 class AttributeRules:
     """Decision rules from posterior samples to attribute names (see the module docstring)."""
@@ -137,7 +142,7 @@ class AttributeRules:
             raise ValueError("colour centres need every posterior's colour and kind, and rules from a fit")
         points: dict[tuple, list] = {}
         for sample, colour, kind in zip(samples, colours, kinds):
-            points.setdefault((colour, kind), []).append(chromaticity(np.median(reflectance(sample), axis=0)))
+            points.setdefault((colour, kind), []).append(median_chromaticity(sample))
         centres = np.array(self.colour_albedos, np.float64)
         for i, key in enumerate(zip(self.colour_names, self.colour_kinds)):
             if key[1] is not None and key in points:
@@ -213,7 +218,7 @@ class AttributeRules:
             kind, metal = self.only_kind, float(self.only_kind == "metal")
         half_extent = float(np.median(np.asarray(samples["scale"])))
         size = min(SIZES, key=lambda s: abs(np.log(half_extent / SIZES[s])))
-        nearest = self.colour_name(chromaticity(np.median(reflectance(samples), axis=0)))
+        nearest = self.colour_name(median_chromaticity(samples))
         return {"shape": SHAPES[int(np.argmax(counts))], "shape_probabilities": shape_probabilities.tolist(),
                 "material": kind, "p_metal": metal, "size": size, "half_extent_m": half_extent, "colour": nearest}
 
