@@ -3,10 +3,11 @@
 Samples the default P3 posterior (``infer``'s SMC under the model's default noise form) of each
 image in turn in one process, and prints per image its wall-clock seconds and the seconds spent
 inside the Mitsuba renderer's callbacks (``render``: colour renders; ``bases``: the material bases
-that the material updates render), how many callbacks ran and how many scenes they rendered. The
-first image also pays the process's compilation (JAX compiles programs with host callbacks in
-every process: its persistent cache does not keep them); the images after it show the steady
-state an evaluation worker runs at. What is neither render nor compilation is the JAX side of the
+that the material updates render), how many callbacks ran and how many scenes they rendered, in
+all and by the renderer's resolution (the coarse wide start's renderer is the smaller). The first
+image also pays the process's compilation (JAX compiles programs with host callbacks in every
+process: its persistent cache does not keep them); the images after it show the steady state an
+evaluation worker runs at. What is neither render nor compilation is the JAX side of the
 likelihood (the shading fields' linear algebra, the moves' arithmetic) and the host between calls.
 
     python experiments/probe_posterior_time.py data/models/fsclvr-fields3 \\
@@ -58,15 +59,23 @@ class RenderClock:
 
     def reset(self):
         self.seconds, self.calls, self.scenes = {"render": 0.0, "bases": 0.0}, 0, 0
+        # by the renderer's resolution (the coarse wide start renders at 1 / SMCConfig.coarse of it):
+        # (height, width) -> [seconds, scenes]
+        self.by_size = collections.defaultdict(lambda: [0.0, 0])
 
     def _timed(self, name, method):
         def timed(renderer, params=None, **options):
             begin = time.perf_counter()
             out = method(renderer, params, **options)
-            self.seconds[name] += time.perf_counter() - begin
+            seconds = time.perf_counter() - begin
+            self.seconds[name] += seconds
             self.calls += 1
             theta = (params or {}).get("theta")      # (B,) for a batch of scenes, a scalar for one
-            self.scenes += len(theta) if np.ndim(theta) == 1 else 1
+            scenes = len(theta) if np.ndim(theta) == 1 else 1
+            self.scenes += scenes
+            size = self.by_size[renderer.height, renderer.width]
+            size[0] += seconds
+            size[1] += scenes
             return out
         return timed
 
@@ -129,6 +138,9 @@ def main() -> None:
                   f"{rendered:.1f} s ({clock.seconds['render']:.1f} colour, {clock.seconds['bases']:.1f} bases; "
                   f"{100 * rendered / total:.0f}%), {clock.calls} callbacks, {clock.scenes} scenes "
                   f"({1e3 * rendered / max(clock.scenes, 1):.2f} ms per scene)", flush=True)
+            for (height, width), (seconds, scenes) in sorted(clock.by_size.items()):
+                print(f"    renderer {height}x{width}: {seconds:.1f} s, {scenes} scenes "
+                      f"({1e3 * seconds / max(scenes, 1):.2f} ms per scene)", flush=True)
             for trace in sorted((traces / str(number)).glob("**/perfetto_trace.json.gz")):
                 for name, seconds, calls in own_times(trace):
                     print(f"    {seconds:7.2f} s {calls:7d} x  {name[:100]}")

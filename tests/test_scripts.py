@@ -326,8 +326,11 @@ def test_tracer_benchmark_carries_the_scene_by_a_rotation_and_refuses_a_folder_w
 
 
 def test_the_posterior_time_probe_counts_renders_and_puts_the_renderer_back(monkeypatch):
-    """experiments/probe_posterior_time.py's clock: every render call and scene counted, colour and bases apart,
-    and the renderer's own methods restored when it is done."""
+    """experiments/probe_posterior_time.py's clock: every render call and scene counted, colour and bases apart
+    and by the renderer's resolution (the coarse start's is the smaller), and the renderer's own methods
+    restored when it is done."""
+    from types import SimpleNamespace
+
     import numpy as np
 
     from mitsuba_p3.render import mitsuba as mitsuba_renderer
@@ -342,15 +345,17 @@ def test_the_posterior_time_probe_counts_renders_and_puts_the_renderer_back(monk
     monkeypatch.setattr(mitsuba_renderer.MitsubaRenderer, "render", render)
     monkeypatch.setattr(mitsuba_renderer.MitsubaRenderer, "render_bases", render_bases)
     probe = load_script("probe_posterior_time")
+    full, coarse = SimpleNamespace(height=120, width=160), SimpleNamespace(height=60, width=80)
     with probe.RenderClock() as clock:
         cls = mitsuba_renderer.MitsubaRenderer
-        cls.render(None, {"theta": np.zeros(5)})
-        image, objects = cls.render(None, {"theta": np.zeros(3)}, objects=True)     # the options pass through
+        cls.render(full, {"theta": np.zeros(5)})
+        image, objects = cls.render(full, {"theta": np.zeros(3)}, objects=True)     # the options pass through
         assert image.shape == (3, 2, 2, 3) and objects.shape == (3, 2, 2)
-        cls.render_bases(None, {"theta": np.zeros(4)})
-        cls.render(None, {"theta": np.float32(0.5), "scale": np.ones(3)})      # one scene, not its scale's 3
+        cls.render_bases(coarse, {"theta": np.zeros(4)})
+        cls.render(full, {"theta": np.float32(0.5), "scale": np.ones(3)})      # one scene, not its scale's 3
         assert (clock.calls, clock.scenes) == (4, 13)
         assert clock.seconds["render"] >= 0.0 and clock.seconds["bases"] >= 0.0
+        assert {size: scenes for size, (_, scenes) in clock.by_size.items()} == {(120, 160): 9, (60, 80): 4}
     assert mitsuba_renderer.MitsubaRenderer.render is render
     assert mitsuba_renderer.MitsubaRenderer.render_bases is render_bases
 
