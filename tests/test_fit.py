@@ -901,6 +901,63 @@ def test_colour_centres_learnt_from_train_posteriors_follow_a_tinted_fit():
     assert np.allclose(read.colour_albedos, learnt.colour_albedos) and read.colour_kinds == learnt.colour_kinds
 
 
+def test_a_saved_rule_moves_the_centres_it_names_and_keeps_the_rest():
+    """A record's colour centres replace the rules' centres of the same colour and kind; a centre the record
+    lacks (a colour's label RGB) is kept, one the rules lack is added: a model's learnt rules read on a data
+    set with another colour do not lose it."""
+    from mitsuba_p3.fit.attributes import AttributeRules
+
+    material = {"colour": [0.6, 0.3, 0.1], "ambient": 0.4, "diffuse": 0.6, "specular": 0.3, "shininess": 4.0}
+    rules = AttributeRules.from_materials({"brown-metal": material}, {"green": (29, 105, 20)})
+    record = {**rules.material_record(), "colour_centres": {"names": ["brown", "teal"], "kinds": ["metal", None],
+                                                            "chromaticities": [[0.5, 0.3, 0.2], [0.1, 0.5, 0.4]]}}
+    read = rules.with_material_record(record)
+    assert read.colour_names == ["brown", "green", "teal"] and read.colour_kinds == ["metal", None, None]
+    np.testing.assert_allclose(read.colour_albedos[0], [0.5, 0.3, 0.2])
+    np.testing.assert_allclose(read.colour_albedos[1], rules.colour_albedos[1])
+
+
+def test_fit_learns_the_attribute_rules_at_the_true_pose_and_they_name_while_the_fit_is_the_same(
+        tiny_model, tiny_dataset, tmp_path):
+    """``fit --stages rules`` draws the material at the train images' labelled poses with the sampler's
+    material moves and saves the rules learnt from the draws beside the fit; ``rules_for`` then reads them
+    in place of the fit's own, and a model.json changed since (a refit) makes it warn and use the fit's."""
+    import shutil
+    import warnings
+
+    from mitsuba_p3.fit.attributes import LEARNT_RULES_FILE, rules_for
+    from mitsuba_p3.infer.truth_rules import TruthSampler
+
+    model = tmp_path / "model"
+    shutil.copytree(tiny_model.root, model)
+    done = subprocess.run([sys.executable, "-m", "mitsuba_p3.cli", "fit", str(tiny_dataset), "--out", str(model),
+                           "--stages", "rules"], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["rules"]["file"].endswith(LEARNT_RULES_FILE)
+    fitted = FittedModel(model)
+    own, learnt = rules_for(fitted, learnt=False), rules_for(fitted)
+    kinds = {name.rsplit("-", 1)[1] for name in fitted.materials}
+    assert learnt.material_features == ("weights+saturation" if len(kinds) == 2 else "weights")
+    moved = [i for i, (name, kind) in enumerate(zip(own.colour_names, own.colour_kinds)) if kind is not None]
+    assert moved and all(learnt.colour_kinds[i] == own.colour_kinds[i] for i in moved)
+    assert any(not np.allclose(learnt.colour_albedos[i], own.colour_albedos[i]) for i in moved)
+    extras = [i for i, kind in enumerate(own.colour_kinds) if kind is None]
+    assert all(np.allclose(learnt.colour_albedos[i], own.colour_albedos[i]) for i in extras)
+
+    dataset = load_dataset(tiny_dataset, resolution=(30, 40))
+    shot = dataset.split("train")[0]
+    draws = TruthSampler(fitted, dataset.resolution)(dataset.image(shot), shot, moves=4, burn=1)
+    assert draws["colour"].shape == (3, 3) and all(np.isfinite(v).all() for v in draws.values())
+
+    info = json.loads((model / "model.json").read_text())
+    (model / "model.json").write_text(json.dumps({**info, "refitted": True}))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        again = rules_for(FittedModel(model))
+    assert any("--stages rules" in str(w.message) for w in caught)
+    np.testing.assert_allclose(again.colour_albedos, own.colour_albedos)
+
+
 def test_material_rule_with_saturation_tells_kinds_whose_weights_agree():
     """Train posteriors whose Phong weights are alike but whose colours are pale (metals) or vivid
     (rubbers): the rule on the weights alone cannot tell them apart, the rule with the reflectance's

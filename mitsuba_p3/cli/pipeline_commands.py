@@ -63,7 +63,10 @@ def choose_sampler(name: str, mh: SamplerConfig, particles: int | None, noise: s
 def fit(
     dataset_dir: Path = typer.Argument(..., help="Benchmark folder (its train split is used)."),
     out: Path = typer.Option(..., "--out", help="Fitted-model folder to write."),
-    stages: str = typer.Option("scene,features,priors,noise", help="Comma-separated stages to (re-)run."),
+    stages: str = typer.Option("scene,features,priors,noise,rules",
+                               help="Comma-separated stages to (re-)run; rules: the attribute rules that infer "
+                                    "uses alone, learnt from the material at train images' true poses (after "
+                                    "the others; needs the scene, priors and noise stages)."),
     epochs: int = typer.Option(7, help="Scene optimisation epochs."),
     material_passes: int = typer.Option(5, help="Material-only passes per epoch."),
     global_passes: int = typer.Option(5, help="Global-only passes per epoch."),
@@ -93,7 +96,7 @@ def fit(
 ) -> None:
     """Training stage: scene optimisation, feature selection and priors -> a fitted-model folder."""
     from ..errors import FitError
-    from ..fit.model import fit_model
+    from ..fit.model import FittedModel, fit_model
     from ..fit.scene_opt import SceneOptConfig
 
     try:
@@ -112,11 +115,21 @@ def fit(
     def track(stage: str, done: int, total: int, loss: float) -> None:
         track_stage(stage, done, total)
 
+    chosen = [s.strip() for s in stages.split(",") if s.strip()]
+    fitted = [s for s in chosen if s != "rules"]
+    if not chosen:
+        raise FitError("no stage to run: name at least one of scene, features, priors, noise, rules")
     with bar:
-        model = fit_model(dataset_dir, out, [s.strip() for s in stages.split(",") if s.strip()],
-                          scene_config=config, channels=channels, progress=track, seeds=seeds)
+        model = (fit_model(dataset_dir, out, fitted, scene_config=config, channels=channels, progress=track,
+                           seeds=seeds) if fitted else FittedModel(out))
+        if "rules" in chosen:
+            from ..infer.truth_rules import write_truth_rules
+
+            rules = write_truth_rules(out, dataset_dir, progress=lambda done, total: track_stage("rules", done, total))
     summary = {stage: {k: v for k, v in figures.items() if k != "config"}
                for stage, figures in model.info["stages"].items()}
+    if "rules" in chosen:
+        summary["rules"] = {"file": str(rules)}
     typer.echo(json.dumps({"model": str(out), **summary}, indent=2))
 
 

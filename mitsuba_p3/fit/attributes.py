@@ -29,6 +29,12 @@ metal sphere?". :class:`AttributeRules` turns posterior samples into those words
   (:meth:`AttributeRules.with_colours_from_posteriors`), as it learns the
   material rule from them.
 
+A model folder can carry rules learnt the same way from cheaper inputs, the material's
+conditional posterior at the *true* poses of a few train images per class
+(:mod:`mitsuba_p3.infer.truth_rules`, ``mitsuba-p3 fit``'s last stage, :data:`LEARNT_RULES_FILE`);
+:func:`rules_for` reads them in place of the fit's materials' while the fit is the one they
+were learnt for, so a lone ``infer`` reads a posterior against posterior-like inputs too.
+
 Every rule is fitted on train classes or fixed by the protocol; nothing is tuned
 on test images.
 """
@@ -42,6 +48,9 @@ from ..scene import COLOURS, SIZES
 from ..shapes import SHAPES
 
 KINDS = ("rubber", "metal")
+# a model folder's attribute rules learnt from the material at its train images' true poses
+# (mitsuba_p3.infer.truth_rules; rules_for reads them)
+LEARNT_RULES_FILE = "attribute-rules.json"
 
 
 # The material rule's inputs: the Phong weights; the weights and the saturation of the reflectance
@@ -191,9 +200,26 @@ class AttributeRules:
                             tuple(model["mean"]), tuple(model["scale"]), tuple(model["coef"]), float(model["intercept"])))
         centres = record.get("colour_centres")      # absent in records written before 2026-11-29
         if centres:
-            rules = replace(rules, colour_names=list(centres["names"]), colour_kinds=list(centres["kinds"]) or None,
-                            colour_albedos=np.asarray(centres["chromaticities"], np.float64))
+            rules = rules._with_centres(centres["names"], centres["kinds"] or [None] * len(centres["names"]),
+                                        centres["chromaticities"])
         return rules
+
+    def _with_centres(self, names, kinds, chromaticities) -> "AttributeRules":
+        """The same rules with the centre of each (colour name, kind) in the lists replaced (one the
+        rules lack added); every other centre (e.g. a colour's label RGB the record never saw) kept."""
+        from dataclasses import replace
+
+        own_kinds = list(self.colour_kinds) if self.colour_kinds is not None else [None] * len(self.colour_names)
+        keys = list(zip(self.colour_names, own_kinds))
+        centres = [np.asarray(c, np.float64) for c in self.colour_albedos]
+        for name, kind, chromaticity in zip(names, kinds, chromaticities):
+            if (name, kind) in keys:
+                centres[keys.index((name, kind))] = np.asarray(chromaticity, np.float64)
+            else:
+                keys.append((name, kind))
+                centres.append(np.asarray(chromaticity, np.float64))
+        return replace(self, colour_names=[k[0] for k in keys], colour_kinds=[k[1] for k in keys],
+                       colour_albedos=np.array(centres, np.float64))
 
     @property
     def reads_misfit(self) -> bool:
@@ -260,10 +286,37 @@ def material_classifier(features: np.ndarray, kinds: list[str]) -> MaterialModel
                          tuple(fitted.coef_[0].tolist()), float(fitted.intercept_[0]))
 
 
-def rules_for(fitted, dataset=None) -> AttributeRules:
-    """The rules of a fitted model; a data set's colours the fit never saw join with their label RGB."""
+def rules_for(fitted, dataset=None, learnt: bool = True) -> AttributeRules:
+    """The rules of a fitted model; a data set's colours the fit never saw join with their label RGB.
+
+    With ``learnt`` (the default) and a model folder that carries rules learnt at the train images'
+    true poses (:data:`LEARNT_RULES_FILE`, written by ``mitsuba-p3 fit``: :mod:`mitsuba_p3.infer.truth_rules`)
+    for the fit as it is now, its material rule and colour centres replace those made from the fit's
+    materials; ``learnt=False`` gives the fit's own."""
     extra = dict(COLOURS)
     if dataset is not None:
         labels = dataset.class_labels
         extra.update({labels[name].colour: tuple(rgb) for name, rgb in dataset.rgb.items() if rgb})
-    return AttributeRules.from_materials(fitted.materials, extra)
+    rules = AttributeRules.from_materials(fitted.materials, extra)
+    record = learnt_rules_record(fitted) if learnt else None
+    return rules.with_material_record(record) if record else rules
+
+
+def learnt_rules_record(fitted) -> dict | None:
+    """The model folder's learnt attribute rules (:data:`LEARNT_RULES_FILE`) when they were learnt for the
+    fit as it is (its model.json's digest); None when there are none or the fit changed since (a warning)."""
+    import json
+    import warnings
+
+    from ..files import file_digest
+
+    path = fitted.root / LEARNT_RULES_FILE
+    if not path.is_file():
+        return None
+    record = json.loads(path.read_text())
+    if record.get("model_digest") != file_digest(fitted.root / "model.json"):
+        warnings.warn(f"{path} was learnt for an earlier fit of this folder, so the fit's own rules name the "
+                      f"attributes; learn them again with mitsuba-p3 fit DATASET --out {fitted.root} --stages rules",
+                      stacklevel=2)
+        return None
+    return record

@@ -19,6 +19,11 @@ noise.json             the pixel noise model fitted to the train residuals (sigm
                        weight, likelihood power) and figures about the fit
 noise_spectrum.npz     the spectral noise form: the residuals' power spectrum per channel,
                        one array per window size ("56x72", "120x160")
+attribute-rules.json   the material rule and colour centres learnt from the material at the
+                       train images' true poses (``mitsuba-p3 fit`` writes it after the stages:
+                       :mod:`mitsuba_p3.infer.truth_rules`), with the model.json digest they
+                       were learnt for
+starts/                with several starts, each start's scene and noise stages
 =====================  ===========================================================
 
 Stages: ``scene`` (scene optimisation), ``features``, ``priors`` and ``noise``
@@ -52,6 +57,7 @@ import numpy as np
 
 from ..files import atomic_json, atomic_npz, atomic_path, atomic_write, claim_output_folder, folder_lock
 from ..benchmarks.dataset import Dataset, load_dataset
+from .attributes import LEARNT_RULES_FILE
 from .features import Channel, channel_losses, select_channels
 from .noise import SPECTRUM_FILE, NoiseModel, fit_noise, load_spectra, save_spectra
 from .priors import Prior, PriorConfig, fit_priors
@@ -64,7 +70,7 @@ STAGES = ("scene", "features", "priors", "noise")
 # the files of a model folder (any of them marks a folder as a fit's own, e.g. one killed before model.json)
 MODEL_FILES = ("model.json", "scene.npz", "scene.xml", "snapshots.npz", "pattern.png", "materials.json",
                "loss_curve.csv", "channel_losses.npz", "features.json", "priors.json", "noise.json", SPECTRUM_FILE,
-               "figures", "starts")
+               "figures", "starts", LEARNT_RULES_FILE)
 # the lights' starts `mitsuba-p3 fit` and `reproduce` try (fit_model alone fits its config's one seed)
 DEFAULT_STARTS = (777, 1, 2, 3)
 # what the scene and noise stages write: the files a kept start brings into the model folder

@@ -1,0 +1,116 @@
+"""Can the attribute rules be learnt without sampling train posteriors? The material at the true pose.
+
+``evaluate`` learns its material rule and colour centres from train posteriors (the full SMC over
+pose, shape and material), because the fit's own materials are a different kind of input than a
+posterior's medians (docs/notebook.md, "Keep the start the noise model explains best"). ``infer``
+alone has no train posteriors. This probe asks whether a far cheaper input will do: the material's
+conditional posterior *at the labelled pose and shape* of train images
+(:func:`mitsuba_p3.infer.truth_rules.truth_draws`: the sampler's own material moves under the default
+likelihood and scoring window, from the fit's material of the image's class).
+
+For the first ``--images`` train images of every class it draws that conditional, and prints JSON per
+run: how far each draw set's median chromaticity lies from its class's cached train posteriors'; and
+the colour and material accuracy on those cached train posteriors of three rules, each class held out
+in turn: the fit's own (``fit``), learnt from the other classes' train posteriors (``posteriors``) and
+learnt from the other classes' truth-pose draws (``truth``), both material rules on the Phong weights
+and the reflectance's saturation (a truth-pose draw has no posterior estimate to measure a Phong misfit
+at).
+
+    python experiments/probe_material_at_truth.py data/fsclvr-lo --run out/train-white-s1=data/models/fsclvr-white-s1
+
+``--test`` scores the same three rules, each learnt from every train class (the posteriors' from the
+run's cached train posteriors), on the run's cached *test* posteriors instead (an evaluation's run
+folder): a final figure, nothing is chosen on it.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+from mitsuba_p3.benchmarks.dataset import load_dataset
+from mitsuba_p3.evaluate.jobs import (CachedPosterior, cached_train_posteriors, colours_learnt_from, posterior_path,
+                                      rules_learnt_from)
+from mitsuba_p3.fit.attributes import median_chromaticity, rules_for
+from mitsuba_p3.fit.model import FittedModel
+from mitsuba_p3.infer.truth_rules import BURN, FEATURES, IMAGES, MOVES, rules_from_draws, truth_draws
+from score_train_attributes import run_specs  # the sibling experiment's --run RUN=MODEL
+
+
+def probe(dataset, run, model, images: int, moves: int, burn: int, likelihood: str) -> dict:
+    fitted = FittedModel(model)
+    rules = rules_for(fitted, dataset, learnt=False)
+    labels = dataset.class_labels
+    posteriors = {name: group for name, group in cached_train_posteriors(dataset, run, likelihood).items() if group}
+    draws = truth_draws(fitted, dataset, images, moves, burn,
+                        lambda done, total: print(f"\r{run}: {done}/{total} truth-pose images", end="", flush=True))
+    print(flush=True)
+    centre = {name: np.mean([median_chromaticity(p.program.samples) for p in group.values()], axis=0)
+              for name, group in posteriors.items()}
+    gaps = [float(np.linalg.norm(median_chromaticity(d) - centre[name])) for name, d in draws if name in centre]
+    right = {attribute: {"fit": 0, "posteriors": 0, "truth": 0} for attribute in ("colour", "material")}
+    count = 0
+    for held in posteriors:
+        others = {n: g for n, g in posteriors.items() if n != held}
+        sources = {"fit": rules,
+                   "posteriors": colours_learnt_from(rules_learnt_from(rules, others, labels, FEATURES), others, labels),
+                   "truth": rules_from_draws(rules, [(n, d) for n, d in draws if n != held], labels)}
+        for post in posteriors[held].values():
+            count += 1
+            for source, r in sources.items():
+                decided = r.decide(post.program.samples)
+                right["colour"][source] += decided["colour"] == labels[held].colour
+                right["material"][source] += decided["material"] == labels[held].material
+    return {"model": str(model), "posteriors": count, "truth_pose_images": len(draws),
+            "chromaticity_gap_to_class_posteriors": {"median": round(float(np.median(gaps)), 4),
+                                                     "p90": round(float(np.percentile(gaps, 90)), 4)},
+            **{f"{attribute}_{source}": round(n / count, 3)
+               for attribute, by in right.items() for source, n in by.items()}}
+
+
+def score_test(dataset, run, model, images: int, moves: int, burn: int, likelihood: str) -> dict:
+    """The three rules, each learnt on all train classes, scored on the run's cached test posteriors."""
+    fitted = FittedModel(model)
+    rules = rules_for(fitted, dataset, learnt=False)
+    labels = dataset.class_labels
+    train = {name: group for name, group in cached_train_posteriors(dataset, run, likelihood).items() if group}
+    sources = {"fit": rules,
+               "posteriors": colours_learnt_from(rules_learnt_from(rules, train, labels, FEATURES), train, labels),
+               "truth": rules_from_draws(rules, truth_draws(fitted, dataset, images, moves, burn), labels)}
+    right = {attribute: {source: 0 for source in sources} for attribute in ("colour", "material")}
+    count = 0
+    for shot in dataset.split("test"):
+        path = posterior_path(run, likelihood, shot.index)
+        if not path.exists():
+            continue
+        count += 1
+        samples = CachedPosterior.load(path, 500).program.samples
+        for source, r in sources.items():
+            decided = r.decide(samples)
+            right["colour"][source] += decided["colour"] == labels[shot.class_name].colour
+            right["material"][source] += decided["material"] == labels[shot.class_name].material
+    return {"model": str(model), "test_posteriors": count,
+            **{f"{attribute}_{source}": round(n / max(count, 1), 3)
+               for attribute, by in right.items() for source, n in by.items()}}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("dataset")
+    parser.add_argument("--run", action="append", required=True, help="RUN=MODEL (repeatable)")
+    parser.add_argument("--images", type=int, default=IMAGES, help="train images per class at the true pose")
+    parser.add_argument("--moves", type=int, default=MOVES, help="material moves per image")
+    parser.add_argument("--burn", type=int, default=BURN, help="moves dropped at the start")
+    parser.add_argument("--likelihood", default="p3")
+    parser.add_argument("--test", action="store_true", help="score on the run's cached test posteriors")
+    args = parser.parse_args()
+    dataset = load_dataset(args.dataset)
+    score = score_test if args.test else probe
+    out = {str(run): score(dataset, run, model, args.images, args.moves, args.burn, args.likelihood)
+           for run, model in run_specs(parser, args.run)}
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
