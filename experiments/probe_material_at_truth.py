@@ -8,17 +8,18 @@ conditional posterior *at the labelled pose and shape* of train images
 (:func:`mitsuba_p3.infer.truth_rules.truth_draws`: the sampler's own material moves under the default
 likelihood and scoring window, from the fit's material of the image's class).
 
-For the first ``--images`` train images of every class it draws that conditional, and prints JSON per
-run: how far each draw set's median chromaticity lies from its class's cached train posteriors'; and
-the colour and material accuracy on those cached train posteriors of three rules, each class held out
-in turn: the fit's own (``fit``), learnt from the other classes' train posteriors (``posteriors``) and
-learnt from the other classes' truth-pose draws (``truth``), both material rules on the Phong weights
-and the reflectance's saturation (a truth-pose draw has no posterior estimate to measure a Phong misfit
-at).
+For the first ``--images`` train images of every class it draws that conditional (and measures the
+image's Phong misfit at its labelled pose), and prints JSON per run: how far each draw set's median
+chromaticity lies from its class's cached train posteriors'; and the colour and material accuracy on
+those cached train posteriors of five rules, each class held out in turn: the fit's own (``fit``);
+learnt from the other classes' train posteriors on the Phong weights and the reflectance's saturation
+(``posteriors``) and with each posterior's Phong misfit too (``posteriors+misfit``, evaluate's rule);
+learnt from the other classes' truth-pose draws without the misfit (``truth-without-misfit``) and with
+the misfit at the labelled pose (``truth``, what ``fit`` now learns).
 
     python experiments/probe_material_at_truth.py data/fsclvr-lo --run out/train-white-s1=data/models/fsclvr-white-s1
 
-``--test`` scores the same three rules, each learnt from every train class (the posteriors' from the
+``--test`` scores the same five rules, each learnt from every train class (the posteriors' from the
 run's cached train posteriors), on the run's cached *test* posteriors instead (an evaluation's run
 folder): a final figure, nothing is chosen on it.
 """
@@ -30,12 +31,16 @@ import json
 import numpy as np
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
-from mitsuba_p3.evaluate.jobs import (CachedPosterior, cached_train_posteriors, colours_learnt_from, posterior_path,
-                                      rules_learnt_from)
+from pathlib import Path
+
+from mitsuba_p3.evaluate.jobs import (CachedPosterior, PosteriorMisfits, cached_train_posteriors, colours_learnt_from,
+                                      posterior_path, rules_learnt_from)
 from mitsuba_p3.fit.attributes import median_chromaticity, rules_for
 from mitsuba_p3.fit.model import FittedModel
 from mitsuba_p3.infer.truth_rules import BURN, FEATURES, IMAGES, MOVES, rules_from_draws, truth_draws
 from score_train_attributes import run_specs  # the sibling experiment's --run RUN=MODEL
+
+WITHOUT_MISFIT = "weights+saturation"
 
 
 def probe(dataset, run, model, images: int, moves: int, burn: int, likelihood: str) -> dict:
@@ -49,17 +54,24 @@ def probe(dataset, run, model, images: int, moves: int, burn: int, likelihood: s
     centre = {name: np.mean([median_chromaticity(p.program.samples) for p in group.values()], axis=0)
               for name, group in posteriors.items()}
     gaps = [float(np.linalg.norm(median_chromaticity(d) - centre[name])) for name, d in draws if name in centre]
-    right = {attribute: {"fit": 0, "posteriors": 0, "truth": 0} for attribute in ("colour", "material")}
+    misfits = PosteriorMisfits(dataset, Path(model))
+    right = {attribute: {"fit": 0, "posteriors": 0, "posteriors+misfit": 0, "truth-without-misfit": 0, "truth": 0}
+             for attribute in ("colour", "material")}
     count = 0
     for held in posteriors:
         others = {n: g for n, g in posteriors.items() if n != held}
         sources = {"fit": rules,
-                   "posteriors": colours_learnt_from(rules_learnt_from(rules, others, labels, FEATURES), others, labels),
-                   "truth": rules_from_draws(rules, [(n, d) for n, d in draws if n != held], labels)}
-        for post in posteriors[held].values():
+                   "posteriors": colours_learnt_from(rules_learnt_from(rules, others, labels, WITHOUT_MISFIT), others,
+                                                     labels),
+                   "truth-without-misfit": rules_from_draws(rules, [(n, d) for n, d in draws if n != held], labels,
+                                                            WITHOUT_MISFIT),
+                   "truth": rules_from_draws(rules, [(n, d) for n, d in draws if n != held], labels),
+                   "posteriors+misfit": colours_learnt_from(rules_learnt_from(rules, others, labels, FEATURES,
+                                                                               misfits), others, labels)}
+        for index, post in posteriors[held].items():
             count += 1
             for source, r in sources.items():
-                decided = r.decide(post.program.samples)
+                decided = r.decide(post.program.samples, misfits.for_rules(r, index, post))
                 right["colour"][source] += decided["colour"] == labels[held].colour
                 right["material"][source] += decided["material"] == labels[held].material
     return {"model": str(model), "posteriors": count, "truth_pose_images": len(draws),
@@ -70,14 +82,19 @@ def probe(dataset, run, model, images: int, moves: int, burn: int, likelihood: s
 
 
 def score_test(dataset, run, model, images: int, moves: int, burn: int, likelihood: str) -> dict:
-    """The three rules, each learnt on all train classes, scored on the run's cached test posteriors."""
+    """The five rules, each learnt on all train classes, scored on the run's cached test posteriors."""
     fitted = FittedModel(model)
     rules = rules_for(fitted, dataset, learnt=False)
     labels = dataset.class_labels
     train = {name: group for name, group in cached_train_posteriors(dataset, run, likelihood).items() if group}
+    draws = truth_draws(fitted, dataset, images, moves, burn)
+    misfits = PosteriorMisfits(dataset, Path(model))
     sources = {"fit": rules,
-               "posteriors": colours_learnt_from(rules_learnt_from(rules, train, labels, FEATURES), train, labels),
-               "truth": rules_from_draws(rules, truth_draws(fitted, dataset, images, moves, burn), labels)}
+               "posteriors": colours_learnt_from(rules_learnt_from(rules, train, labels, WITHOUT_MISFIT), train, labels),
+               "posteriors+misfit": colours_learnt_from(rules_learnt_from(rules, train, labels, FEATURES, misfits), train,
+                                                        labels),
+               "truth-without-misfit": rules_from_draws(rules, draws, labels, WITHOUT_MISFIT),
+               "truth": rules_from_draws(rules, draws, labels)}
     right = {attribute: {source: 0 for source in sources} for attribute in ("colour", "material")}
     count = 0
     for shot in dataset.split("test"):
@@ -85,9 +102,9 @@ def score_test(dataset, run, model, images: int, moves: int, burn: int, likeliho
         if not path.exists():
             continue
         count += 1
-        samples = CachedPosterior.load(path, 500).program.samples
+        post = CachedPosterior.load(path, 500)
         for source, r in sources.items():
-            decided = r.decide(samples)
+            decided = r.decide(post.program.samples, misfits.for_rules(r, shot.index, post))
             right["colour"][source] += decided["colour"] == labels[shot.class_name].colour
             right["material"][source] += decided["material"] == labels[shot.class_name].material
     return {"model": str(model), "test_posteriors": count,

@@ -937,7 +937,8 @@ def test_fit_learns_the_attribute_rules_at_the_true_pose_and_they_name_while_the
     fitted = FittedModel(model)
     own, learnt = rules_for(fitted, learnt=False), rules_for(fitted)
     kinds = {name.rsplit("-", 1)[1] for name in fitted.materials}
-    assert learnt.material_features == ("weights+saturation" if len(kinds) == 2 else "weights")
+    assert learnt.material_features == ("weights+saturation+misfit" if len(kinds) == 2 else "weights")
+    assert learnt.reads_misfit == (len(kinds) == 2)
     moved = [i for i, (name, kind) in enumerate(zip(own.colour_names, own.colour_kinds)) if kind is not None]
     assert moved and all(learnt.colour_kinds[i] == own.colour_kinds[i] for i in moved)
     assert any(not np.allclose(learnt.colour_albedos[i], own.colour_albedos[i]) for i in moved)

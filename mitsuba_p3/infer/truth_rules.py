@@ -12,12 +12,13 @@ What it can have at the cost of a minute: the material's conditional posterior a
 and shape of a few train images per class, drawn by the sampler's own material moves (the Gibbs update
 of colour and weights, :meth:`~mitsuba_p3.infer.material_moves.MaterialMoves.material_move`, one render
 of the material bases per move) under the default P3 likelihood and scoring window, from the fit's
-material of the image's class (its shininess kept). The material rule (on the Phong weights and the
-reflectance's saturation: there is no posterior estimate to measure a Phong misfit at) and the colour
+material of the image's class (its shininess kept). The material rule (on the Phong weights, the
+reflectance's saturation and the image's Phong misfit at its labelled pose, :mod:`mitsuba_p3.infer.misfit`:
+``evaluate``'s features, the misfit measured where a posterior's estimate would be) and the colour
 centres are then learnt from those draws as ``evaluate`` learns them from posteriors. Chosen on train
 classes (``experiments/probe_material_at_truth.py``, 60 train posteriors of each of four fits, each class
-held out): colour 240 of 240 against the fit's materials' 235, material kind 210 against 199 (train
-posteriors' own rule without the misfit: 215).
+held out): colour 240 of 240 against the fit's materials' 235; material kind 217 against the fit's 199
+(without the misfit 210; evaluate's rule, learnt from the train posteriors themselves, 218).
 
 ``mitsuba-p3 fit`` writes them to the model folder (:data:`~mitsuba_p3.fit.attributes.LEARNT_RULES_FILE`,
 with the digest of the fit they were learnt for), and :func:`~mitsuba_p3.fit.attributes.rules_for` reads
@@ -36,11 +37,12 @@ from ..fit.attributes import LEARNT_RULES_FILE, rules_for
 from ..fit.model import FittedModel
 from ..fit.scene_opt import geometry_of
 from ..shapes import SHAPES
+from .misfit import misfit_renderer, model_misfit
 
 IMAGES = 2          # train images per class
 MOVES = 40          # material moves per image
 BURN = 10           # moves dropped at the start
-FEATURES = "weights+saturation"
+FEATURES = "weights+saturation+misfit"   # evaluate's rule's (MATERIAL_RULE_FEATURES), the misfit at the labelled pose
 _NATURAL = ("colour", "ambient", "diffuse", "specular", "shininess")
 
 
@@ -98,28 +100,34 @@ class TruthSampler:
 def truth_draws(fitted: FittedModel, dataset: Dataset, images: int = IMAGES, moves: int = MOVES, burn: int = BURN,
                 progress: Callable[[int, int], None] | None = None) -> list[tuple[str, dict]]:
     """(class name, draws) for the first ``images`` train images of every train class whose colour and
-    kind the fit has a material for."""
+    kind the fit has a material for; each draws' ``misfit`` is the image's Phong misfit at its labelled
+    pose (:func:`~mitsuba_p3.infer.misfit.model_misfit`)."""
     shots = []
     for name in dataset.classes("train"):
         own = [s for s in dataset.shots_of(name) if f"{s.cls.colour}-{s.cls.material}" in fitted.materials]
         shots += own[:images]
     sampler = TruthSampler(fitted, dataset.resolution) if shots else None
+    renderer = misfit_renderer(fitted, *dataset.resolution) if shots else None
     out = []
     for done, shot in enumerate(shots):
-        out.append((shot.class_name, sampler(dataset.image(shot), shot, moves, burn, seed=shot.index)))
+        image = dataset.image(shot)
+        draws = sampler(image, shot, moves, burn, seed=shot.index)
+        draws["misfit"] = model_misfit(fitted, image, geometry_of(shot), renderer)
+        out.append((shot.class_name, draws))
         if progress:
             progress(done + 1, len(shots))
     return out
 
 
-def rules_from_draws(rules, draws: list[tuple[str, dict]], labels: dict):
-    """``rules`` with the material rule and the colour centres learnt from (class name, draws) pairs, as
-    ``evaluate`` learns them from posteriors; ``labels`` give each class's colour and kind."""
+def rules_from_draws(rules, draws: list[tuple[str, dict]], labels: dict, features: str = FEATURES):
+    """``rules`` with the material rule (on ``features``) and the colour centres learnt from (class name,
+    draws) pairs, as ``evaluate`` learns them from posteriors; ``labels`` give each class's colour and kind."""
     if not draws:
         return rules
     samples = [d for _, d in draws]
     kinds = [labels[name].material for name, _ in draws]
-    rules = rules.with_material_from_posteriors(samples, kinds, FEATURES)
+    misfits = [d.get("misfit") for d in samples] if features.endswith("+misfit") else None
+    rules = rules.with_material_from_posteriors(samples, kinds, features, misfits)
     return rules.with_colours_from_posteriors(samples, [labels[name].colour for name, _ in draws], kinds)
 
 
