@@ -43,7 +43,33 @@ from score_train_attributes import run_specs  # the sibling experiment's --run R
 WITHOUT_MISFIT = "weights+saturation"
 
 
+def learnt_rules(rules, posteriors: dict, draws: list, labels: dict, misfits) -> dict:
+    """The five rules compared (module docstring), the learnt ones from these train ``posteriors`` (class
+    name -> {index: posterior}) and truth-pose ``draws`` ((class name, draws) pairs)."""
+    return {"fit": rules,
+            "posteriors": colours_learnt_from(rules_learnt_from(rules, posteriors, labels, WITHOUT_MISFIT), posteriors,
+                                              labels),
+            "posteriors+misfit": colours_learnt_from(rules_learnt_from(rules, posteriors, labels, FEATURES, misfits),
+                                                     posteriors, labels),
+            "truth-without-misfit": rules_from_draws(rules, draws, labels, WITHOUT_MISFIT),
+            "truth": rules_from_draws(rules, draws, labels)}
+
+
+def tally(right: dict, sources: dict, index: int, post, truth, misfits) -> None:
+    """Add one posterior's colour and material decisions under every rule of ``sources`` to ``right``."""
+    for source, r in sources.items():
+        decided = r.decide(post.program.samples, misfits.for_rules(r, index, post))
+        right["colour"][source] = right["colour"].get(source, 0) + (decided["colour"] == truth.colour)
+        right["material"][source] = right["material"].get(source, 0) + (decided["material"] == truth.material)
+
+
+def shares(right: dict, count: int) -> dict:
+    return {f"{attribute}_{source}": round(n / max(count, 1), 3) for attribute, by in right.items()
+            for source, n in by.items()}
+
+
 def probe(dataset, run, model, images: int, moves: int, burn: int, likelihood: str) -> dict:
+    """The five rules on the run's cached train posteriors, each class held out in turn."""
     fitted = FittedModel(model)
     rules = rules_for(fitted, dataset, learnt=False)
     labels = dataset.class_labels
@@ -55,61 +81,34 @@ def probe(dataset, run, model, images: int, moves: int, burn: int, likelihood: s
               for name, group in posteriors.items()}
     gaps = [float(np.linalg.norm(median_chromaticity(d) - centre[name])) for name, d in draws if name in centre]
     misfits = PosteriorMisfits(dataset, Path(model))
-    right = {attribute: {"fit": 0, "posteriors": 0, "posteriors+misfit": 0, "truth-without-misfit": 0, "truth": 0}
-             for attribute in ("colour", "material")}
-    count = 0
+    right, count = {"colour": {}, "material": {}}, 0
     for held in posteriors:
-        others = {n: g for n, g in posteriors.items() if n != held}
-        sources = {"fit": rules,
-                   "posteriors": colours_learnt_from(rules_learnt_from(rules, others, labels, WITHOUT_MISFIT), others,
-                                                     labels),
-                   "truth-without-misfit": rules_from_draws(rules, [(n, d) for n, d in draws if n != held], labels,
-                                                            WITHOUT_MISFIT),
-                   "truth": rules_from_draws(rules, [(n, d) for n, d in draws if n != held], labels),
-                   "posteriors+misfit": colours_learnt_from(rules_learnt_from(rules, others, labels, FEATURES,
-                                                                               misfits), others, labels)}
+        sources = learnt_rules(rules, {n: g for n, g in posteriors.items() if n != held},
+                               [(n, d) for n, d in draws if n != held], labels, misfits)
         for index, post in posteriors[held].items():
             count += 1
-            for source, r in sources.items():
-                decided = r.decide(post.program.samples, misfits.for_rules(r, index, post))
-                right["colour"][source] += decided["colour"] == labels[held].colour
-                right["material"][source] += decided["material"] == labels[held].material
+            tally(right, sources, index, post, labels[held], misfits)
     return {"model": str(model), "posteriors": count, "truth_pose_images": len(draws),
             "chromaticity_gap_to_class_posteriors": {"median": round(float(np.median(gaps)), 4),
                                                      "p90": round(float(np.percentile(gaps, 90)), 4)},
-            **{f"{attribute}_{source}": round(n / count, 3)
-               for attribute, by in right.items() for source, n in by.items()}}
+            **shares(right, count)}
 
 
 def score_test(dataset, run, model, images: int, moves: int, burn: int, likelihood: str) -> dict:
     """The five rules, each learnt on all train classes, scored on the run's cached test posteriors."""
     fitted = FittedModel(model)
-    rules = rules_for(fitted, dataset, learnt=False)
     labels = dataset.class_labels
     train = {name: group for name, group in cached_train_posteriors(dataset, run, likelihood).items() if group}
-    draws = truth_draws(fitted, dataset, images, moves, burn)
     misfits = PosteriorMisfits(dataset, Path(model))
-    sources = {"fit": rules,
-               "posteriors": colours_learnt_from(rules_learnt_from(rules, train, labels, WITHOUT_MISFIT), train, labels),
-               "posteriors+misfit": colours_learnt_from(rules_learnt_from(rules, train, labels, FEATURES, misfits), train,
-                                                        labels),
-               "truth-without-misfit": rules_from_draws(rules, draws, labels, WITHOUT_MISFIT),
-               "truth": rules_from_draws(rules, draws, labels)}
-    right = {attribute: {source: 0 for source in sources} for attribute in ("colour", "material")}
-    count = 0
+    sources = learnt_rules(rules_for(fitted, dataset, learnt=False), train,
+                           truth_draws(fitted, dataset, images, moves, burn), labels, misfits)
+    right, count = {"colour": {}, "material": {}}, 0
     for shot in dataset.split("test"):
         path = posterior_path(run, likelihood, shot.index)
-        if not path.exists():
-            continue
-        count += 1
-        post = CachedPosterior.load(path, 500)
-        for source, r in sources.items():
-            decided = r.decide(post.program.samples, misfits.for_rules(r, shot.index, post))
-            right["colour"][source] += decided["colour"] == labels[shot.class_name].colour
-            right["material"][source] += decided["material"] == labels[shot.class_name].material
-    return {"model": str(model), "test_posteriors": count,
-            **{f"{attribute}_{source}": round(n / max(count, 1), 3)
-               for attribute, by in right.items() for source, n in by.items()}}
+        if path.exists():
+            count += 1
+            tally(right, sources, shot.index, CachedPosterior.load(path, 500), labels[shot.class_name], misfits)
+    return {"model": str(model), "test_posteriors": count, **shares(right, count)}
 
 
 def main() -> None:

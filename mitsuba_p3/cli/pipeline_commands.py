@@ -116,12 +116,12 @@ def fit(
         track_stage(stage, done, total)
 
     chosen = [s.strip() for s in stages.split(",") if s.strip()]
-    fitted = [s for s in chosen if s != "rules"]
+    fit_stages = [s for s in chosen if s != "rules"]
     if not chosen:
         raise FitError("no stage to run: name at least one of scene, features, priors, noise, rules")
     with bar:
-        model = (fit_model(dataset_dir, out, fitted, scene_config=config, channels=channels, progress=track,
-                           seeds=seeds) if fitted else FittedModel(out))
+        model = (fit_model(dataset_dir, out, fit_stages, scene_config=config, channels=channels, progress=track,
+                           seeds=seeds) if fit_stages else FittedModel(out))
         if "rules" in chosen:
             from ..infer.truth_rules import write_truth_rules
 
