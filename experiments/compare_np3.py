@@ -34,7 +34,7 @@ def main() -> None:
     args = parser.parse_args()
 
     dataset = load_dataset(args.dataset)
-    rules = rules_for(FittedModel(args.model), dataset)
+    rules = rules_for(FittedModel(args.model), dataset, learnt=False)
     both = [s for s in dataset.split("test")
             if all(posterior_path(args.run, k, s.index).exists() for k in ("p3", "np3"))]
     if not both:

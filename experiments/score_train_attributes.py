@@ -35,7 +35,7 @@ def score(dataset, run: Path, model: Path, likelihood: str, shots: int | None, o
         cached.update({i: p for i, p in sorted(posteriors.items())[:shots] if only is None or i in only})
     if not cached:
         raise SystemExit(f"{run} holds no cached train posteriors for {likelihood}")
-    rows, summary = attribute_recovery(dataset, cached, rules_for(FittedModel(model), dataset))
+    rows, summary = attribute_recovery(dataset, cached, rules_for(FittedModel(model), dataset, learnt=False))
     misread = []
     for r in rows:
         wrong = [f"{a} {r[f'{a}_decided']}" for a in ATTRIBUTES if r[f"{a}_true"] != r[f"{a}_decided"]]

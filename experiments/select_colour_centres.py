@@ -41,7 +41,7 @@ def held_out_centres(rules, posteriors: dict, labels: dict, held_out: str):
 
 def compare(dataset, run: Path, model: Path, likelihood: str) -> dict:
     """Colour accuracy of both sources on one run's cached train posteriors, each class held out."""
-    rules = rules_for(FittedModel(model), dataset)
+    rules = rules_for(FittedModel(model), dataset, learnt=False)    # the fit's own materials
     labels = dataset.class_labels
     posteriors = {name: p for name, p in cached_train_posteriors(dataset, run, likelihood).items() if p}
     if not posteriors:

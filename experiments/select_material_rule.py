@@ -49,7 +49,7 @@ def main() -> None:
     args = parser.parse_args()
 
     dataset = load_dataset(args.dataset)
-    fit_rules = rules_for(FittedModel(args.model), dataset)
+    fit_rules = rules_for(FittedModel(args.model), dataset, learnt=False)
     misfits = PosteriorMisfits(dataset, args.model)
     if not misfits.available:
         raise SystemExit(f"{args.model} has no fitted noise model, the misfit's unit: run its noise stage first")

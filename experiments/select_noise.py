@@ -117,7 +117,7 @@ def main() -> None:
         models[f"spectral-{value}"] = shrunk_model(args.model, dataset, float(value), args.copies / f"shrink-{value}")
     # images outside, forms inside: a run stopped early compares the forms on the same images
     cores, rows = {}, {form: [] for form in models}
-    rules = {form: rules_for(model, dataset) for form, model in models.items()}
+    rules = {form: rules_for(model, dataset, learnt=False) for form, model in models.items()}
     for i, shot in enumerate(shots):
         for form, model in models.items():
             if (form, shot.index) in done:

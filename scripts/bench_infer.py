@@ -168,7 +168,7 @@ def main() -> None:
             if seed == 0:
                 run_seconds = (time.perf_counter() - start) / len(tests) if fresh else None
             runs.append({s.index: CachedPosterior.load(posterior_path(run_dir, "p3", s.index), 500) for s in tests})
-        _, recovered = attribute_recovery(dataset, runs[0], rules)
+        _, recovered = attribute_recovery(dataset, runs[0], rules, misfits)     # the model's rules may read the misfit
         learnt = rules_with_train_posteriors(rules, dataset, args.out / f"{name}-seed0", "p3", misfits)
         if learnt is not rules:
             recovered["material_accuracy_train_posterior_rule"] = attribute_recovery(
