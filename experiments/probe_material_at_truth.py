@@ -15,7 +15,10 @@ those cached train posteriors of five rules, each class held out in turn: the fi
 learnt from the other classes' train posteriors on the Phong weights and the reflectance's saturation
 (``posteriors``) and with each posterior's Phong misfit too (``posteriors+misfit``, evaluate's rule);
 learnt from the other classes' truth-pose draws without the misfit (``truth-without-misfit``) and with
-the misfit at the labelled pose (``truth``, what ``fit`` now learns).
+the misfit at the labelled pose (``truth``, what ``fit`` now learns). The two with the misfit are also
+learnt with the kinds weighed equally (``posteriors+misfit balanced``, ``truth balanced``;
+:data:`mitsuba_p3.fit.attributes.KIND_WEIGHTS`), and every material share is printed also as the mean of
+the two kinds' shares (``material_balanced_...``), which a rule's prior on the kinds cannot buy.
 
     python experiments/probe_material_at_truth.py data/fsclvr-lo --run out/train-white-s1=data/models/fsclvr-white-s1
 
@@ -31,6 +34,7 @@ import json
 import numpy as np
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
+from mitsuba_p3.fit import attributes
 from pathlib import Path
 
 from mitsuba_p3.evaluate.jobs import (CachedPosterior, PosteriorMisfits, cached_train_posteriors, colours_learnt_from,
@@ -44,28 +48,49 @@ WITHOUT_MISFIT = "weights+saturation"
 
 
 def learnt_rules(rules, posteriors: dict, draws: list, labels: dict, misfits) -> dict:
-    """The five rules compared (module docstring), the learnt ones from these train ``posteriors`` (class
-    name -> {index: posterior}) and truth-pose ``draws`` ((class name, draws) pairs)."""
-    return {"fit": rules,
-            "posteriors": colours_learnt_from(rules_learnt_from(rules, posteriors, labels, WITHOUT_MISFIT), posteriors,
-                                              labels),
-            "posteriors+misfit": colours_learnt_from(rules_learnt_from(rules, posteriors, labels, FEATURES, misfits),
-                                                     posteriors, labels),
-            "truth-without-misfit": rules_from_draws(rules, draws, labels, WITHOUT_MISFIT),
-            "truth": rules_from_draws(rules, draws, labels)}
+    """The rules compared (module docstring), the learnt ones from these train ``posteriors`` (class
+    name -> {index: posterior}) and truth-pose ``draws`` ((class name, draws) pairs); the two with the misfit
+    also with the kinds weighed equally (``... balanced``, :data:`~mitsuba_p3.fit.attributes.KIND_WEIGHTS`)."""
+    def learnt(weights):
+        previous, attributes.KIND_WEIGHTS = attributes.KIND_WEIGHTS, weights
+        try:
+            return {"posteriors": colours_learnt_from(rules_learnt_from(rules, posteriors, labels, WITHOUT_MISFIT),
+                                                      posteriors, labels),
+                    "posteriors+misfit": colours_learnt_from(
+                        rules_learnt_from(rules, posteriors, labels, FEATURES, misfits), posteriors, labels),
+                    "truth-without-misfit": rules_from_draws(rules, draws, labels, WITHOUT_MISFIT),
+                    "truth": rules_from_draws(rules, draws, labels)}
+        finally:
+            attributes.KIND_WEIGHTS = previous
+
+    counted, balanced = learnt(None), learnt("balanced")
+    return {"fit": rules, **counted, **{f"{source} balanced": balanced[source] for source in ("posteriors+misfit",
+                                                                                              "truth")}}
 
 
 def tally(right: dict, sources: dict, index: int, post, truth, misfits) -> None:
-    """Add one posterior's colour and material decisions under every rule of ``sources`` to ``right``."""
+    """Add one posterior's colour and material decisions under every rule of ``sources`` to ``right``
+    (the material's also by the image's true kind, for the accuracy with the kinds weighed equally)."""
     for source, r in sources.items():
         decided = r.decide(post.program.samples, misfits.for_rules(r, index, post))
         right["colour"][source] = right["colour"].get(source, 0) + (decided["colour"] == truth.colour)
         right["material"][source] = right["material"].get(source, 0) + (decided["material"] == truth.material)
+        by_kind = right.setdefault(f"material_{truth.material}", {})
+        by_kind[source] = by_kind.get(source, 0) + (decided["material"] == truth.material)
+    right.setdefault("count", {}).setdefault(truth.material, 0)
+    right["count"][truth.material] += 1
 
 
 def shares(right: dict, count: int) -> dict:
-    return {f"{attribute}_{source}": round(n / max(count, 1), 3) for attribute, by in right.items()
-            for source, n in by.items()}
+    """Each rule's share right of colour and material; its material share right with the kinds weighed
+    equally (the mean of the two kinds' shares)."""
+    out = {f"{attribute}_{source}": round(n / max(count, 1), 3) for attribute, by in right.items()
+           if attribute in ("colour", "material") for source, n in by.items()}
+    kinds = right.get("count", {})
+    if len(kinds) == 2:
+        out.update({f"material_balanced_{source}": round(float(np.mean(
+            [right[f"material_{kind}"][source] / n for kind, n in kinds.items()])), 3) for source in right["material"]})
+    return out
 
 
 def probe(dataset, run, model, images: int, moves: int, burn: int, likelihood: str) -> dict:

@@ -870,6 +870,22 @@ def test_material_rule_learnt_from_train_posteriors_sees_what_posteriors_say():
     assert fit_rules.with_material_from_posteriors(metals, ["metal"] * 6) is fit_rules
 
 
+def test_the_material_rule_gives_each_kind_a_prior_of_one_half(monkeypatch):
+    """Four metals against sixteen rubbers, placed as mirror images: weighed by kind, the rule is indifferent
+    half-way between them, whatever the train split's counts; weighed as the examples come, the counts become
+    its prior and it calls the midpoint rubber."""
+    from mitsuba_p3.fit import attributes
+
+    metals = np.array([[1.0, 0.0], [1.5, 0.5], [0.5, -0.5], [1.0, 1.0]])
+    features = np.concatenate([metals, np.tile(-metals, (4, 1))])
+    kinds = ["metal"] * 4 + ["rubber"] * 16
+    midpoint = np.zeros((1, 2))
+    assert attributes.KIND_WEIGHTS == "balanced"
+    assert attributes.material_classifier(features, kinds).predict_proba(midpoint)[0, 1] == pytest.approx(0.5, abs=0.02)
+    monkeypatch.setattr(attributes, "KIND_WEIGHTS", None)
+    assert attributes.material_classifier(features, kinds).predict_proba(midpoint)[0, 1] < 0.4
+
+
 def test_colour_centres_learnt_from_train_posteriors_follow_a_tinted_fit():
     """A fit whose brown metal came out reddish names a brown posterior red; with each centre moved to its colour
     and kind's train posteriors the brown posterior is brown again, the centres of kinds without posteriors and
