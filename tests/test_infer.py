@@ -1150,7 +1150,10 @@ def test_bridge_from_p3_adds_the_neural_terms_evidence(fitted):
     from mitsuba_p3.infer.smc import SMCConfig, sample_smc
 
     observed = make_renderer_image(fitted)
-    config = SMCConfig(particles=8, mcmc_steps=1, final_steps=1, draws=40, window=None, target_ess=1e-6)
+    # no wide start and one round: the bridge's increment is the same for any start, and the coarse start's and the
+    # second round's programs cost minutes of compilation for nothing this test asks
+    config = SMCConfig(particles=8, mcmc_steps=1, final_steps=1, draws=40, window=None, target_ess=1e-6,
+                       wide_steps=0, rounds=1)
     p3, np3 = (LikelihoodConfig(kind, sigma=0.03, power=0.05, shadows=True) for kind in ("p3", "np3"))
     colour, neural = PosteriorModel(fitted, observed, p3), PosteriorModel(fitted, observed, np3)
     start = sample_smc(colour.core, colour.observation, config).particles.rows
