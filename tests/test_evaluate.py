@@ -294,8 +294,10 @@ def test_a_bridged_np3_job_starts_from_p3s_cached_particles(bench, tmp_path):
 
     dataset = load_dataset(bench / "data")
     shot = dataset.split("test")[0].index
+    # no wide start and one round: where NP3 starts from is tested, not P3's start (minutes of compilation)
     config = EvaluationConfig(likelihoods=("p3", "np3"), noise="fitted",
-                              sampler=SMCConfig(particles=4, mcmc_steps=1, final_steps=1, draws=40))
+                              sampler=SMCConfig(particles=4, mcmc_steps=1, final_steps=1, draws=40, wide_steps=0,
+                                                rounds=1))
     compute_posteriors(dataset, bench / "model", tmp_path / "both", config, shots=[shot])
     with np.load(posterior_path(tmp_path / "both", "p3", shot)) as f:
         assert f["particles_position"].shape[1:] == (4, 15) and np.all(np.isfinite(f["particles_log_evidence"]))

@@ -1262,7 +1262,9 @@ def test_sbc_runs_on_the_phong_model_and_resumes(fitted, tmp_path):
     from mitsuba_p3.infer.smc import SMCConfig
 
     core = PosteriorCore(fitted, LikelihoodConfig("p3", sigma=0.2, shadows=True), "mitsuba", *RES)
-    sample = smc_sampler(core, SMCConfig(particles=4, oversample=2, mcmc_steps=1, final_steps=0, draws=16, islands=1))
+    # no wide start and one round: SBC's bookkeeping is what is tested, not the sampler's start (minutes of compilation)
+    sample = smc_sampler(core, SMCConfig(particles=4, oversample=2, mcmc_steps=1, final_steps=0, draws=16, islands=1,
+                                         wide_steps=0, rounds=1))
     cache = tmp_path / "cache.npz"
     first = run_sbc(core, sample, 2, 9, cache=cache)
     assert first.ranks.shape == (2, 8) and first.ranks.min() >= 0 and first.ranks.max() <= 9
@@ -1308,7 +1310,7 @@ def test_sbc_of_the_shading_fields_simulates_fields_on_the_window_the_sampler_sc
     assert picked is not None and objects.any() and changed[objects].all()
     assert changed.sum() < changed.size - objects.sum()   # the bare floor away from object and shadow stays white
     sample = smc_sampler(core, SMCConfig(particles=4, oversample=2, mcmc_steps=1, final_steps=0, draws=16, islands=1,
-                                         window=window))
+                                         window=window, wide_steps=0, rounds=1))
     result = run_sbc(core, sample, 1, 9, window=window)
     assert result.ranks.shape == (1, 8) and 0 <= result.ranks.min() and result.ranks.max() <= 9
 
