@@ -15,10 +15,11 @@ those cached train posteriors of five rules, each class held out in turn: the fi
 learnt from the other classes' train posteriors on the Phong weights and the reflectance's saturation
 (``posteriors``) and with each posterior's Phong misfit too (``posteriors+misfit``, evaluate's rule);
 learnt from the other classes' truth-pose draws without the misfit (``truth-without-misfit``) and with
-the misfit at the labelled pose (``truth``, what ``fit`` now learns). The two with the misfit are also
-learnt with the kinds weighed equally (``posteriors+misfit balanced``, ``truth balanced``;
-:data:`mitsuba_p3.fit.attributes.KIND_WEIGHTS`), and every material share is printed also as the mean of
-the two kinds' shares (``material_balanced_...``), which a rule's prior on the kinds cannot buy.
+the misfit at the labelled pose (``truth``). The learnt rules weigh their examples as they come, and the two
+with the misfit are also learnt with the kinds weighed equally (``posteriors+misfit balanced`` and ``truth
+balanced``, what ``evaluate`` and ``fit`` now learn: :data:`mitsuba_p3.fit.attributes.KIND_WEIGHTS`); the
+fit's own rule (``fit``) follows that setting. Every material share is printed also as the mean of the two
+kinds' shares (``material_balanced_...``), which a rule's prior on the kinds cannot buy.
 
     python experiments/probe_material_at_truth.py data/fsclvr-lo --run out/train-white-s1=data/models/fsclvr-white-s1
 
