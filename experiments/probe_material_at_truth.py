@@ -31,15 +31,14 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 import numpy as np
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
-from mitsuba_p3.fit import attributes
-from pathlib import Path
-
 from mitsuba_p3.evaluate.jobs import (CachedPosterior, PosteriorMisfits, cached_train_posteriors, colours_learnt_from,
                                       posterior_path, rules_learnt_from)
+from mitsuba_p3.fit import attributes
 from mitsuba_p3.fit.attributes import median_chromaticity, rules_for
 from mitsuba_p3.fit.model import FittedModel
 from mitsuba_p3.infer.truth_rules import BURN, FEATURES, IMAGES, MOVES, rules_from_draws, truth_draws
@@ -52,21 +51,24 @@ def learnt_rules(rules, posteriors: dict, draws: list, labels: dict, misfits) ->
     """The rules compared (module docstring), the learnt ones from these train ``posteriors`` (class
     name -> {index: posterior}) and truth-pose ``draws`` ((class name, draws) pairs); the two with the misfit
     also with the kinds weighed equally (``... balanced``, :data:`~mitsuba_p3.fit.attributes.KIND_WEIGHTS`)."""
-    def learnt(weights):
+    def from_posteriors(features):
+        return colours_learnt_from(rules_learnt_from(rules, posteriors, labels, features, misfits), posteriors, labels)
+
+    def weighed(weights, make):
         previous, attributes.KIND_WEIGHTS = attributes.KIND_WEIGHTS, weights
         try:
-            return {"posteriors": colours_learnt_from(rules_learnt_from(rules, posteriors, labels, WITHOUT_MISFIT),
-                                                      posteriors, labels),
-                    "posteriors+misfit": colours_learnt_from(
-                        rules_learnt_from(rules, posteriors, labels, FEATURES, misfits), posteriors, labels),
-                    "truth-without-misfit": rules_from_draws(rules, draws, labels, WITHOUT_MISFIT),
-                    "truth": rules_from_draws(rules, draws, labels)}
+            return make()
         finally:
             attributes.KIND_WEIGHTS = previous
 
-    counted, balanced = learnt(None), learnt("balanced")
-    return {"fit": rules, **counted, **{f"{source} balanced": balanced[source] for source in ("posteriors+misfit",
-                                                                                              "truth")}}
+    truth = lambda features=FEATURES: rules_from_draws(rules, draws, labels, features)  # noqa: E731
+    return {"fit": rules,
+            "posteriors": weighed(None, lambda: from_posteriors(WITHOUT_MISFIT)),
+            "posteriors+misfit": weighed(None, lambda: from_posteriors(FEATURES)),
+            "truth-without-misfit": weighed(None, lambda: truth(WITHOUT_MISFIT)),
+            "truth": weighed(None, truth),
+            "posteriors+misfit balanced": weighed("balanced", lambda: from_posteriors(FEATURES)),
+            "truth balanced": weighed("balanced", truth)}
 
 
 def tally(right: dict, sources: dict, index: int, post, truth, misfits) -> None:
