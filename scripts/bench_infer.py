@@ -1,7 +1,9 @@
 """Inference benchmark over a benchmark's test split: speed, attribute recovery and agreement across seeds.
 
 For each sampler setting (``--configs``), samples the P3 posterior of every test image
-(or ``--images N`` of them, evenly spaced) with ``--seeds`` seeds, through the
+(or ``--images N`` of them, evenly spaced, or the images ``--shots`` names) with ``--seeds`` seeds; with
+``--split train`` the train images instead, where a setting is chosen (the test split is for final figures).
+The posteriors come through the
 evaluation's cached, resumable, parallel posterior jobs (``OUT/CONFIG-seedS``; a killed
 run resumes), then prints JSON, the settings side by side:
 
@@ -35,7 +37,8 @@ coarse wide start, rendered turns, chart walk or window term (the default before
 the default scoring a scene whose object left the window by the window alone (the default until the eighth session,
 ``SMCConfig.inside_window``); ``smc-unfolded`` the default
 with the walk in z, not in a symmetry chart (the default before the chart walk); ``smc-jump`` the default with
-the material kind's jump;
+the material kind's jump; ``smc-fields-rounds4`` the default with up to four rounds of runs where the answer
+stays open (a seed's first two rounds are the default's own runs);
 ``mh-paper`` the MH evaluation preset with the paper's likelihood
 (sigma 1, no shadows), the project's old default; ``mh-fitted`` that sampler with the fitted
 noise. ``NAME:S`` runs a setting with S seeds instead of ``--seeds``. Needs a benchmark folder
@@ -44,7 +47,7 @@ and a model fitted to it:
     mitsuba-p3 benchmark generate fsclvr --out data/fsclvr
     mitsuba-p3 fit data/fsclvr --out data/models/fsclvr
     python scripts/bench_infer.py [--dataset data/fsclvr] [--model data/models/fsclvr] [--out out/bench-infer]
-        [--configs smc-fields,smc-fields-one-round] [--seeds 4] [--images 120] [--jobs 2]
+        [--configs smc-fields,smc-fields-one-round] [--seeds 4] [--images 120 | --shots 24,25] [--split test] [--jobs 2]
 """
 from __future__ import annotations
 
@@ -78,7 +81,8 @@ CONFIGS = {"mh-paper": {"noise": "paper"}, "mh-fitted": {"noise": "fitted"},
            "smc-unfolded": {"noise": "fitted", "sampler": SMCConfig(chart=False)},
            "smc-jump": {"noise": "fitted", "sampler": SMCConfig(jump=True)},
            "smc-fields": {"noise": "fields", "sampler": SMCConfig()},
-           "smc-fields-one-round": {"noise": "fields", "sampler": SMCConfig(rounds=1)}}
+           "smc-fields-one-round": {"noise": "fields", "sampler": SMCConfig(rounds=1)},
+           "smc-fields-rounds4": {"noise": "fields", "sampler": SMCConfig(rounds=4)}}
 CHECKED = ("shift", "scale", "colour")
 
 
@@ -135,22 +139,33 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("out/bench-infer"))
     parser.add_argument("--configs", default="smc-fields,smc-fields-one-round")
     parser.add_argument("--seeds", type=int, default=4)
-    parser.add_argument("--images", type=int, default=None, help="evenly spaced test images (default: all)")
+    parser.add_argument("--images", type=int, default=None, help="evenly spaced images of the split (default: all)")
+    parser.add_argument("--shots", default=None, help="comma-separated image indices of the split, in place of --images")
+    parser.add_argument("--split", choices=("test", "train"), default="test",
+                        help="the split to sample: train to choose a setting, test (the default) for final figures")
     parser.add_argument("--jobs", type=int, default=len(os.sched_getaffinity(0)))
     args = parser.parse_args()
     chosen = {c.partition(":")[0]: int(c.partition(":")[2] or args.seeds) for c in args.configs.split(",")}
     unknown = [c for c in chosen if c not in CONFIGS]
     if unknown:
         parser.error(f"unknown settings {unknown}; choose from {', '.join(CONFIGS)}")
+    if args.images and args.shots:
+        parser.error("give --images or --shots, not both")
     dataset = load_dataset(args.dataset)
-    tests = dataset.split("test")
-    if args.images:
-        tests = [tests[i] for i in np.unique(np.linspace(0, len(tests) - 1, args.images).astype(int))]
+    images = dataset.split(args.split)
+    if args.shots:
+        wanted = [int(i) for i in args.shots.split(",") if i.strip()]
+        unknown = sorted(set(wanted) - {s.index for s in images})
+        if unknown:
+            parser.error(f"--shots {unknown} are not images of the {args.split} split")
+        images = [s for s in images if s.index in wanted]
+    elif args.images:
+        images = [images[i] for i in np.unique(np.linspace(0, len(images) - 1, args.images).astype(int))]
     rules = rules_for(FittedModel(args.model), dataset)
     misfits = PosteriorMisfits(dataset, Path(args.model))
     from mitsuba_p3.reproduce import machine
 
-    report = {"dataset": args.dataset, "images": len(tests), "seeds": args.seeds, "machine": machine(),
+    report = {"dataset": args.dataset, "split": args.split, "images": len(images), "seeds": args.seeds, "machine": machine(),
               "settings": {}}
     for name, seeds in chosen.items():
         runs = []
@@ -160,16 +175,18 @@ def main() -> None:
             sampler = replace(settings.get("sampler", PRESET), seed=seed)
             config = EvaluationConfig(likelihoods=("p3",), sampler=sampler, jobs=args.jobs, noise=settings["noise"])
             check_run(run_dir, dataset, Path(args.model), config)
-            fresh = not any(posterior_path(run_dir, "p3", s.index).exists() for s in tests)
+            fresh = not any(posterior_path(run_dir, "p3", s.index).exists() for s in images)
             start = time.perf_counter()
-            compute_posteriors(dataset, Path(args.model), run_dir, config, shots=[s.index for s in tests],
+            compute_posteriors(dataset, Path(args.model), run_dir, config, shots=[s.index for s in images],
                                progress=lambda d, t: print(f"\r{name} seed {seed}: {d}/{t}", end="", flush=True))
             print(flush=True)
             if seed == 0:
-                run_seconds = (time.perf_counter() - start) / len(tests) if fresh else None
-            runs.append({s.index: CachedPosterior.load(posterior_path(run_dir, "p3", s.index), 500) for s in tests})
+                run_seconds = (time.perf_counter() - start) / len(images) if fresh else None
+            runs.append({s.index: CachedPosterior.load(posterior_path(run_dir, "p3", s.index), 500) for s in images})
         _, recovered = attribute_recovery(dataset, runs[0], rules, misfits)     # the model's rules may read the misfit
-        learnt = rules_with_train_posteriors(rules, dataset, args.out / f"{name}-seed0", "p3", misfits)
+        # (learnt from train posteriors, it would score the images it learnt from on the train split)
+        learnt = rules if args.split == "train" else rules_with_train_posteriors(rules, dataset, args.out / f"{name}-seed0",
+                                                                                 "p3", misfits)
         if learnt is not rules:
             recovered["material_accuracy_train_posterior_rule"] = attribute_recovery(
                 dataset, runs[0], learnt, misfits)[1]["material_accuracy"]
@@ -182,7 +199,7 @@ def main() -> None:
                  "log_evidence_spread": _evidence_spread(runs)}
         entry["seeds"] = seeds
         if seeds > 1:
-            per_image = [r_hat_across_seeds([run[s.index] for run in runs]) for s in tests]
+            per_image = [r_hat_across_seeds([run[s.index] for run in runs]) for s in images]
             r_hats = [max(r.values()) for r in per_image]
             entry["max_r_hat_across_seeds_median"] = float(np.median(r_hats))
             entry["max_r_hat_across_seeds_p90"] = float(np.percentile(r_hats, 90))
