@@ -7,7 +7,10 @@ A posterior of ``SMCConfig(rounds=R)`` keeps every run's log evidence in the ord
 replaying the rounds' rule (:func:`mitsuba_p3.infer.evidence.decision`) on the cached runs gives each
 seed's posterior over shapes after r rounds, for every r, from one sampling. Per r it prints, over the
 images: the share whose modal shape every seed agrees on, the median spread across seeds of the log odds
-of the two leading shapes, the mean p(true shape) and the runs spent per posterior.
+of the two leading shapes, the mean p(true shape) and the runs spent per posterior; and the same for a rule that
+stops a seed at the first round whose leader holds against k = 2 standard errors of the pooled evidence
+(``rounds_se``, :func:`standard_error_decided`), which, unlike the extremes the sampler's rule reads, can decide as
+runs accumulate.
 
     python scripts/bench_infer.py --dataset data/fsclvr-lo --model data/models/fsclvr-white-s1 --split train \\
         --shots 24,25 --configs smc-fields-rounds4 --seeds 2 --out out/rounds4
@@ -33,9 +36,22 @@ from mitsuba_p3.infer.evidence import decision
 from mitsuba_p3.shapes import SHAPES
 
 
+def standard_error_decided(log_prior: np.ndarray, runs: list[np.ndarray], threshold: float, k: float = 2.0) -> bool:
+    """A rule that can decide as runs accumulate (the extremes of :func:`decision` only widen): the leader keeps
+    weight ``threshold`` with its pooled evidence lowered, and every other's raised, by k standard errors of the
+    log of the runs' mean, sqrt((n sum w^2 - 1) / (n - 1)) with w each run's share of the summed evidence (the
+    relative standard error of a mean; infinite for one run)."""
+    pooled = np.array([np.logaddexp.reduce(m) - np.log(len(m)) for m in runs])
+    error = np.array([np.sqrt(max(len(m) * np.sum(np.exp(2 * (m - np.logaddexp.reduce(m)))) - 1, 0) / (len(m) - 1))
+                      if len(m) > 1 else np.inf for m in runs])
+    leader = int(np.argmax(log_prior + pooled))
+    worst = log_prior + pooled + np.where(np.arange(len(runs)) == leader, -k, k) * error
+    return bool(np.exp(worst[leader] - np.logaddexp.reduce(worst)) >= threshold) if np.all(np.isfinite(worst)) else False
+
+
 def replay(index: np.ndarray, log_evidence: np.ndarray, log_prior: np.ndarray, islands: int, threshold: float):
-    """Per round r = 1, 2, ...: (pooled log evidence per hypothesis, runs so far), replaying the rounds' rule
-    on a posterior's runs in the order they were made."""
+    """Per round r = 1, 2, ...: (pooled log evidence per hypothesis, runs so far, whether the standard-error rule
+    would stop here), replaying the rounds' rule on a posterior's runs in the order they were made."""
     count, used, contenders, out = len(log_prior), 0, np.arange(len(log_prior)), []
     while used < len(index):
         size = len(contenders) * islands
@@ -45,7 +61,7 @@ def replay(index: np.ndarray, log_evidence: np.ndarray, log_prior: np.ndarray, i
         mine = [log_evidence[:used][index[:used] == h] for h in range(count)]
         pooled = np.array([np.logaddexp.reduce(m) - np.log(len(m)) for m in mine])
         low, high = np.array([m.min() for m in mine]), np.array([m.max() for m in mine])
-        out.append((pooled, used))
+        out.append((pooled, used, standard_error_decided(log_prior, mine, threshold)))
         decided, contenders = decision(log_prior, pooled, low, high, threshold)
         if decided or len(contenders) < 2:
             break
@@ -71,7 +87,7 @@ def main() -> None:
     images = sorted(set.intersection(*({int(p.stem) for p in (run / "posteriors" / "p3").glob("*.npz")}
                                        for run in args.runs)))
     rounds = max(s["rounds"] for s in settings)
-    table = {r: {"agree": [], "spread": [], "p_true": [], "runs": []} for r in range(1, rounds + 1)}
+    table = {r: {"agree": [], "spread": [], "p_true": [], "runs": []} for r in [*range(1, rounds + 1), "se"]}
     for image in images:
         true = SHAPES.index(dataset.shots[image].cls.shape)
         per_seed = []
@@ -82,20 +98,22 @@ def main() -> None:
             if args.check is not None and run == args.runs[0] and posterior_path(args.check, "p3", image).exists():
                 other = np.load(posterior_path(args.check, "p3", image))
                 made = len(other["particles_index"])
-                kept = next((pooled for pooled, used in steps if used == made), None)
+                kept = next((pooled for pooled, used, _ in steps if used == made), None)
                 same = kept is not None and np.allclose(kept, other["log_evidence"])
                 print(f"check {image}: {'same' if same else 'DIFFERENT'} ({made} runs cached there)")
         line = [f"{image:5d} {dataset.shots[image].class_name:32s}"]
-        for r in range(1, rounds + 1):
-            at = [steps[min(r, len(steps)) - 1] for steps in per_seed]
-            probs = np.array([shape_probabilities(pooled, log_prior) for pooled, _ in at])
+        for r in [*range(1, rounds + 1), "se"]:
+            # "se": each seed stops at the first round the standard-error rule decides (or its last)
+            at = [next((x for x in steps if x[2]), steps[-1]) if r == "se" else steps[min(r, len(steps)) - 1]
+                  for steps in per_seed]
+            probs = np.array([shape_probabilities(pooled, log_prior) for pooled, _, _ in at])
             modal = probs.argmax(axis=1)
             top = np.argsort(probs.mean(axis=0))[-2:]
             odds = np.log(probs[:, top[1]] + 1e-12) - np.log(probs[:, top[0]] + 1e-12)
             table[r]["agree"].append(len(set(modal)) == 1)
             table[r]["spread"].append(float(np.ptp(odds)))
             table[r]["p_true"].append(float(probs[:, true].mean()))
-            table[r]["runs"].append(float(np.mean([used for _, used in at])))
+            table[r]["runs"].append(float(np.mean([used for _, used, _ in at])))
             line.append(f"r{r}: p(true) " + "/".join(f"{p:.2f}" for p in probs[:, true]))
         print("  ".join(line), flush=True)
     summary = {f"rounds_{r}": {"modal_shape_same_across_seeds": float(np.mean(v["agree"])),
