@@ -470,3 +470,28 @@ def test_train_scores_summarise_the_island_gaps_they_have():
     assert summary["island_gap_median"] == 1.5 and summary["island_gap_over_10"] == 1
     assert 2.0 < summary["island_gap_p90"] < 30.0
     assert probe.gap_summary([float("nan")]) == {}
+
+
+def test_the_rounds_replay_reads_each_round_from_the_runs_and_refuses_runs_out_of_order():
+    """experiments/probe_rounds.py: a posterior's runs replayed round by round, as the sampler's rule made them. Round 1
+    runs every hypothesis twice; the rule then keeps the two still in contention (the cube is 50 nats behind), round 2
+    runs only those, and the replay's pooled evidence after each round is the log of the mean of the runs so far. Runs
+    that are not a round of the contenders are refused, and the standard-error rule decides only once the runs agree."""
+    probe = load_script("probe_rounds")
+    log_prior = np.log(np.full(3, 1 / 3))
+    index = np.array([0, 1, 2, 0, 1, 2, 0, 2, 0, 2])
+    evidence = np.array([10.0, -40.0, 10.5, 12.0, -41.0, 9.0, 10.0, 10.0, 11.0, 10.5])
+    rounds = probe.replay(index, evidence, log_prior, islands=2, threshold=0.99)
+    assert [used for _, used, _ in rounds] == [6, 10]
+    first, second = rounds[0][0], rounds[1][0]
+    assert first[0] == pytest.approx(np.log(np.mean(np.exp([10.0, 12.0]))))
+    assert second[2] == pytest.approx(np.log(np.mean(np.exp([10.5, 9.0, 10.0, 10.5]))))
+    assert second[1] == first[1]                     # the cube ran no second round
+    with pytest.raises(ValueError, match="not a round"):
+        probe.replay(np.array([0, 1, 2, 0, 1, 2, 0, 1, 0, 1]), evidence, log_prior, islands=2, threshold=0.99)
+
+    runs = [np.array([20.0, 20.1, 19.9, 20.0]), np.array([0.0, 0.1, -0.1, 0.0]), np.array([1.0, 1.0, 1.1, 0.9])]
+    assert probe.standard_error_decided(log_prior, runs, 0.99)
+    assert not probe.standard_error_decided(log_prior, [r[:1] for r in runs], 0.99)     # one run: no error known
+    close = [np.array([5.0, 1.0, 1.2, 0.8]), np.array([4.0, 4.1, 3.9, 4.0]), np.array([0.0, 0.1, -0.1, 0.0])]
+    assert not probe.standard_error_decided(log_prior, close, 0.99)
