@@ -1,4 +1,4 @@
-"""Inference benchmark over a benchmark's test split: speed, attribute recovery and agreement across seeds.
+"""Inference benchmark over a benchmark's test (or train) split: speed, attribute recovery and agreement across seeds.
 
 For each sampler setting (``--configs``), samples the P3 posterior of every test image
 (or ``--images N`` of them, evenly spaced, or the images ``--shots`` names) with ``--seeds`` seeds; with
@@ -149,12 +149,17 @@ def main() -> None:
     unknown = [c for c in chosen if c not in CONFIGS]
     if unknown:
         parser.error(f"unknown settings {unknown}; choose from {', '.join(CONFIGS)}")
-    if args.images and args.shots:
+    if args.images and args.shots is not None:
         parser.error("give --images or --shots, not both")
     dataset = load_dataset(args.dataset)
     images = dataset.split(args.split)
-    if args.shots:
-        wanted = [int(i) for i in args.shots.split(",") if i.strip()]
+    if args.shots is not None:
+        try:
+            wanted = [int(i) for i in args.shots.split(",") if i.strip()]
+        except ValueError:
+            parser.error(f"--shots takes comma-separated image indices; got {args.shots!r}")
+        if not wanted:
+            parser.error("--shots names no image")
         unknown = sorted(set(wanted) - {s.index for s in images})
         if unknown:
             parser.error(f"--shots {unknown} are not images of the {args.split} split")
@@ -165,8 +170,8 @@ def main() -> None:
     misfits = PosteriorMisfits(dataset, Path(args.model))
     from mitsuba_p3.reproduce import machine
 
-    report = {"dataset": args.dataset, "split": args.split, "images": len(images), "seeds": args.seeds, "machine": machine(),
-              "settings": {}}
+    report = {"dataset": args.dataset, "split": args.split, "images": len(images), "seeds": args.seeds,
+              "machine": machine(), "settings": {}}
     for name, seeds in chosen.items():
         runs = []
         for seed in range(seeds):
