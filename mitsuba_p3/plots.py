@@ -339,22 +339,37 @@ def _tempering_panels(lam_ax, ess_ax, names: list, steps: Sequence[dict]) -> Non
     ess_ax.set_title("ESS and acceptance (mean over runs)", fontsize=8)
 
 
+def wilson_interval(accuracy: np.ndarray, count: np.ndarray, z: float = 1.96) -> tuple[np.ndarray, np.ndarray]:
+    """The Wilson score interval (95% at z = 1.96) of a share ``accuracy`` of ``count`` trials: honest for the
+    few-query bins of a reliability diagram, where the normal interval leaves [0, 1]."""
+    accuracy, count = np.asarray(accuracy, np.float64), np.asarray(count, np.float64)
+    centre = (accuracy + z * z / (2 * count)) / (1 + z * z / count)
+    half = z * np.sqrt(accuracy * (1 - accuracy) / count + z * z / (4 * count * count)) / (1 + z * z / count)
+    return centre - half, centre + half
+
+
 def reliability_diagram(path: str | Path, results: dict, settings: Sequence[str]) -> Path:
     """Accuracy against confidence per few-shot setting, one line per model (``results``: model ->
     its evaluation results, whose accuracy per setting carries the reliability bins; a lower-case
-    model name such as ``p3`` is shown in capitals)."""
+    model name such as ``p3`` is shown in capitals). Each bin's marker grows with its queries and
+    carries its accuracy's 95% Wilson interval, so a bin of three queries reads as the guess it is."""
     plt = _pyplot()
     settings = [name for name in settings if any(name in r["accuracy"] for r in results.values())]
     figure, axes = plt.subplots(1, len(settings), figsize=(3.2 * len(settings), 3.2), squeeze=False)
     for ax, name in zip(axes[0], settings):
         ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--")
-        for likelihood, result in results.items():
+        for i, (likelihood, result) in enumerate(results.items()):
             acc = result["accuracy"].get(name)
             if not acc:
                 continue
-            bins = [b for b in acc["reliability"] if b[2] > 0]
-            ax.plot([b[0] for b in bins], [b[1] for b in bins], marker="o",
-                    label=f"{likelihood.upper() if likelihood.islower() else likelihood} (ECE {acc['ece']:.3f})")
+            confidence, accuracy, count = np.array([b for b in acc["reliability"] if b[2] > 0], np.float64).T
+            low, high = wilson_interval(accuracy, count)
+            colour = plt.cm.tab10(i % 10)
+            ax.plot(confidence, accuracy, color=colour, lw=0.8, alpha=0.5)
+            ax.errorbar(confidence, accuracy, yerr=[accuracy - low, high - accuracy], fmt="none", ecolor=colour,
+                        elinewidth=0.8, capsize=2)
+            ax.scatter(confidence, accuracy, s=8 + 60 * np.sqrt(count / count.max()), color=colour, zorder=3,
+                       label=f"{likelihood.upper() if likelihood.islower() else likelihood} (ECE {acc['ece']:.3f})")
         ax.set_title(name)
         ax.set_xlabel("confidence")
         ax.set_xlim(0, 1)

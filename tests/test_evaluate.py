@@ -502,3 +502,17 @@ def test_evaluate_samples_again_for_an_image_replaced_in_place(bench, tmp_path):
     assert path.with_suffix(".stale").exists()
     with np.load(path) as f:
         assert str(f["image_digest"]) != first
+
+
+def test_reliability_bins_carry_the_wilson_interval_and_the_figure_is_written(tmp_path):
+    """The reliability diagram's error bars: the Wilson score interval, which stays inside [0, 1] for a bin of three
+    queries all wrong (0 to 0.56) and of twenty all right, and is the textbook's for five of ten."""
+    from mitsuba_p3.plots import reliability_diagram, wilson_interval
+
+    low, high = wilson_interval(np.array([0.0, 0.5, 1.0]), np.array([3, 10, 20]))
+    assert low == pytest.approx([0.0, 0.2366, 0.8389], abs=1e-4)
+    assert high == pytest.approx([0.5615, 0.7634, 1.0], abs=1e-4)
+    bins = [[None, None, 0], [0.55, 0.5, 4], [0.99, 0.98, 480]]
+    results = {"p3": {"accuracy": {"5-way 1-shot": {"reliability": bins, "ece": 0.02}}}}
+    path = reliability_diagram(tmp_path / "reliability.png", results, ["5-way 1-shot", "10-way 5-shot"])
+    assert path.is_file() and path.stat().st_size > 0
