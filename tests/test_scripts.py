@@ -495,3 +495,21 @@ def test_the_rounds_replay_reads_each_round_from_the_runs_and_refuses_runs_out_o
     assert not probe.standard_error_decided(log_prior, [r[:1] for r in runs], 0.99)     # one run: no error known
     close = [np.array([5.0, 1.0, 1.2, 0.8]), np.array([4.0, 4.1, 3.9, 4.0]), np.array([0.0, 0.1, -0.1, 0.0])]
     assert not probe.standard_error_decided(log_prior, close, 0.99)
+
+
+def test_run_streams_replay_spends_one_run_per_round_and_keeps_the_leaders_second():
+    """experiments/probe_run_streams.py: one run per hypothesis and round stops after three runs on an image the first
+    round decides, spends its most on both contenders of a close call (and drops the hypothesis 60 nats behind after its
+    one run); "leader-twice" gives the decided leader its second run, the island gap's."""
+    probe = load_script("probe_run_streams")
+    log_prior = np.log(np.full(3, 1 / 3))
+    decided = [np.array([10.0, 10.2, 10.1, 9.9]), np.full(4, -50.0), np.full(4, -40.0)]
+    assert probe.replay_streams(decided, log_prior, 0.99, "one")[1:] == (3, False)
+    assert probe.replay_streams(decided, log_prior, 0.99, "leader-twice")[1:] == (4, False)
+    close = [np.array([10.0, 8.0, 9.0, 11.0]), np.full(4, -50.0), np.array([9.5, 10.5, 9.0, 9.0])]
+    pooled, runs, short = probe.replay_streams(close, log_prior, 0.99, "one")
+    assert (runs, short) == (9, False)
+    assert pooled[0] == pytest.approx(np.log(np.mean(np.exp(close[0]))))
+    assert probe.replay_streams([s[:2] for s in close], log_prior, 0.99, "one")[2]      # the cache held only two
+    with pytest.raises(ValueError, match="unknown scheme"):
+        probe.replay_streams(close, log_prior, 0.99, "two")
