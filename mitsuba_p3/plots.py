@@ -362,12 +362,15 @@ def reliability_diagram(path: str | Path, results: dict, settings: Sequence[str]
             acc = result["accuracy"].get(name)
             if not acc:
                 continue
-            confidence, accuracy, count = np.array([b for b in acc["reliability"] if b[2] > 0], np.float64).T
+            bins = [b for b in acc["reliability"] if b[2] > 0]
+            if not bins:
+                continue
+            confidence, accuracy, count = np.array(bins, np.float64).T
             low, high = wilson_interval(accuracy, count)
             colour = plt.cm.tab10(i % 10)
             ax.plot(confidence, accuracy, color=colour, lw=0.8, alpha=0.5)
-            ax.errorbar(confidence, accuracy, yerr=[accuracy - low, high - accuracy], fmt="none", ecolor=colour,
-                        elinewidth=0.8, capsize=2)
+            error = np.clip([accuracy - low, high - accuracy], 0.0, None)    # (a rounding below zero at 0 or 1)
+            ax.errorbar(confidence, accuracy, yerr=error, fmt="none", ecolor=colour, elinewidth=0.8, capsize=2)
             ax.scatter(confidence, accuracy, s=8 + 60 * np.sqrt(count / count.max()), color=colour, zorder=3,
                        label=f"{likelihood.upper() if likelihood.islower() else likelihood} (ECE {acc['ece']:.3f})")
         ax.set_title(name)

@@ -512,7 +512,7 @@ def test_reliability_bins_carry_the_wilson_interval_and_the_figure_is_written(tm
     low, high = wilson_interval(np.array([0.0, 0.5, 1.0]), np.array([3, 10, 20]))
     assert low == pytest.approx([0.0, 0.2366, 0.8389], abs=1e-4)
     assert high == pytest.approx([0.5615, 0.7634, 1.0], abs=1e-4)
-    bins = [[None, None, 0], [0.55, 0.5, 4], [0.99, 0.98, 480]]
+    bins = [[None, None, 0], [0.45, 0.0, 3], [0.55, 0.5, 4], [0.99, 0.98, 480], [1.0, 1.0, 20]]
     results = {"p3": {"accuracy": {"5-way 1-shot": {"reliability": bins, "ece": 0.02}}}}
     path = reliability_diagram(tmp_path / "reliability.png", results, ["5-way 1-shot", "10-way 5-shot"])
     assert path.is_file() and path.stat().st_size > 0
