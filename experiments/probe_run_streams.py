@@ -32,6 +32,7 @@ from mitsuba_p3.evaluate import posterior_path
 from mitsuba_p3.fit.model import FittedModel
 from mitsuba_p3.infer.evidence import decision
 from mitsuba_p3.shapes import SHAPES
+from probe_rounds import shape_probabilities   # (a neighbour in experiments/)
 
 SCHEMES = ("one", "leader-twice")
 
@@ -67,11 +68,6 @@ def replay_streams(streams: list[np.ndarray], log_prior: np.ndarray, threshold: 
         short = short or not held.all()
         asked = asked[held]
     return pooled, int(used.sum()), short
-
-
-def shape_probabilities(pooled: np.ndarray, log_prior: np.ndarray) -> np.ndarray:
-    weights = log_prior + pooled
-    return np.exp(weights - np.logaddexp.reduce(weights))
 
 
 def main() -> None:
