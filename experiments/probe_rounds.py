@@ -36,12 +36,17 @@ from mitsuba_p3.infer.evidence import decision
 from mitsuba_p3.shapes import SHAPES
 
 
+def pooled_of(runs: list[np.ndarray]) -> np.ndarray:
+    """log Z per hypothesis: the log of the mean of its runs' estimates."""
+    return np.array([np.logaddexp.reduce(m) - np.log(len(m)) for m in runs])
+
+
 def standard_error_decided(log_prior: np.ndarray, runs: list[np.ndarray], threshold: float, k: float = 2.0) -> bool:
     """A rule that can decide as runs accumulate (the extremes of :func:`decision` only widen): the leader keeps
     weight ``threshold`` with its pooled evidence lowered, and every other's raised, by k standard errors of the
     log of the runs' mean, sqrt((n sum w^2 - 1) / (n - 1)) with w each run's share of the summed evidence (the
     relative standard error of a mean; infinite for one run)."""
-    pooled = np.array([np.logaddexp.reduce(m) - np.log(len(m)) for m in runs])
+    pooled = pooled_of(runs)
     error = np.array([np.sqrt(max(len(m) * np.sum(np.exp(2 * (m - np.logaddexp.reduce(m)))) - 1, 0) / (len(m) - 1))
                       if len(m) > 1 else np.inf for m in runs])
     leader = int(np.argmax(log_prior + pooled))
@@ -59,7 +64,7 @@ def replay(index: np.ndarray, log_evidence: np.ndarray, log_prior: np.ndarray, i
             raise ValueError(f"the runs after the first {used} are not a round of {contenders.tolist()}")
         used += size
         mine = [log_evidence[:used][index[:used] == h] for h in range(count)]
-        pooled = np.array([np.logaddexp.reduce(m) - np.log(len(m)) for m in mine])
+        pooled = pooled_of(mine)
         low, high = np.array([m.min() for m in mine]), np.array([m.max() for m in mine])
         out.append((pooled, used, standard_error_decided(log_prior, mine, threshold)))
         decided, contenders = decision(log_prior, pooled, low, high, threshold)

@@ -32,13 +32,9 @@ from mitsuba_p3.evaluate import posterior_path
 from mitsuba_p3.fit.model import FittedModel
 from mitsuba_p3.infer.evidence import decision
 from mitsuba_p3.shapes import SHAPES
-from probe_rounds import shape_probabilities   # (a neighbour in experiments/)
+from probe_rounds import pooled_of, shape_probabilities   # (a neighbour in experiments/)
 
 SCHEMES = ("one", "leader-twice")
-
-
-def pooled_of(streams: list[np.ndarray]) -> np.ndarray:
-    return np.array([np.logaddexp.reduce(s) - np.log(len(s)) for s in streams])
 
 
 def replay_streams(streams: list[np.ndarray], log_prior: np.ndarray, threshold: float, scheme: str,
