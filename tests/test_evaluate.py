@@ -165,6 +165,27 @@ def test_parallel_workers_share_the_cores(bench, tmp_path):
             assert int(f["render_threads"]) == worker_threads(2)
 
 
+def test_a_jax_tracer_worker_needs_no_mitsuba_and_shares_the_gpu(monkeypatch):
+    """A worker of an evaluation under the JAX tracer sets XLA's threads and leaves Dr.Jit alone (such
+    a run works where Mitsuba is not installed, as on a lent GPU machine); every worker takes device
+    memory as it needs it, so several can share one GPU. Under Mitsuba the worker needs Dr.Jit, and says so."""
+    import sys
+
+    from mitsuba_p3.evaluate import jobs
+
+    for name in ("XLA_FLAGS", "XLA_PYTHON_CLIENT_PREALLOCATE"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setitem(sys.modules, "drjit", None)        # import drjit now raises ImportError
+    jobs._limit_threads(1, "jax")
+    assert jobs._render_threads("jax") == 0
+    assert os.environ["XLA_FLAGS"] == jobs.SINGLE_THREAD_XLA_FLAGS
+    assert os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
+    from mitsuba_p3.errors import BackendError
+
+    with pytest.raises(BackendError, match="cannot import Mitsuba"):
+        jobs._limit_threads(1, "mitsuba")
+
+
 _HELD = []
 
 

@@ -50,17 +50,23 @@ def worker_threads(jobs: int) -> int | None:
     return max(1, cores // jobs)
 
 
-def _limit_threads(threads: int) -> None:
+def _limit_threads(threads: int, renderer: str = "mitsuba") -> None:
     """Give this worker process ``threads`` threads for rendering (Dr.Jit) and, for one thread, a
     single-threaded XLA. A fresh worker has not imported JAX yet when its first job starts (this
-    module does not import it), so the XLA flags take effect."""
+    module does not import it), so the XLA flags take effect. Workers that share a GPU each take
+    its memory as they need it rather than XLA's default three quarters of the device at start, which
+    no two workers can both take. Under the JAX tracer Dr.Jit renders nothing and is left alone: such an
+    evaluation runs where Mitsuba is not installed."""
+    if threads == 1:
+        os.environ.setdefault("XLA_FLAGS", SINGLE_THREAD_XLA_FLAGS)
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+    if renderer != "mitsuba":
+        return
     from ..backend import mitsuba
 
     mitsuba()  # Dr.Jit with the checked libLLVM
     import drjit as dr
 
-    if threads == 1:
-        os.environ.setdefault("XLA_FLAGS", SINGLE_THREAD_XLA_FLAGS)
     if dr.thread_count() != threads:
         dr.set_thread_count(threads)
 
@@ -88,7 +94,10 @@ def _exit_with_parent() -> None:
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
 
-def _render_threads() -> int:
+def _render_threads(renderer: str = "mitsuba") -> int:
+    """Dr.Jit's render threads in this process; 0 where the JAX tracer renders (XLA's own threads)."""
+    if renderer != "mitsuba":
+        return 0
     import drjit as dr
 
     return dr.thread_count()
@@ -99,7 +108,7 @@ def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str,
     """Sample one image's posterior and cache what evaluation needs (a picklable job)."""
     if threads:                    # a worker process of this machine (:func:`in_workers`)
         _exit_with_parent()
-        _limit_threads(threads)
+        _limit_threads(threads, config.renderer)
     from ..fit.model import FittedModel
     from ..infer.posterior import default_likelihood, infer_image
 
@@ -130,7 +139,7 @@ def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str,
                   max_r_hat=np.float64(summary["r_hat"].max()), min_ess=np.float64(summary["ess_bulk"].min()),
                   island_gap=np.float64(np.nan if gap is None else gap),
                   log_bayes_factor_object=np.float64(np.nan if factor is None else factor),
-                  render_threads=np.int64(_render_threads()), **_evidence(posterior),
+                  render_threads=np.int64(_render_threads(config.renderer)), **_evidence(posterior),
                   **(_particle_arrays(posterior.particles) if likelihood == "p3" else {}))
     return out
 
