@@ -173,8 +173,9 @@ def test_a_jax_tracer_worker_needs_no_mitsuba_and_shares_the_gpu(monkeypatch):
 
     from mitsuba_p3.evaluate import jobs
 
-    for name in ("XLA_FLAGS", "XLA_PYTHON_CLIENT_PREALLOCATE"):
-        monkeypatch.delenv(name, raising=False)
+    # a copy of the environment without the two variables, so that what the worker sets stays in this test
+    monkeypatch.setattr(os, "environ", {k: v for k, v in os.environ.items()
+                                        if k not in ("XLA_FLAGS", "XLA_PYTHON_CLIENT_PREALLOCATE")})
     monkeypatch.setitem(sys.modules, "drjit", None)        # import drjit now raises ImportError
     jobs._limit_threads(1, "jax")
     assert jobs._render_threads("jax") == 0
