@@ -183,7 +183,8 @@ def test_a_jax_tracer_worker_needs_no_mitsuba_and_shares_the_gpu(monkeypatch):
     assert os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
     from mitsuba_p3.errors import BackendError
 
-    with pytest.raises(BackendError, match="cannot import Mitsuba"):
+    # the backend's error where Mitsuba was not imported yet, else Dr.Jit's own import error
+    with pytest.raises((BackendError, ImportError), match="Mitsuba|drjit"):
         jobs._limit_threads(1, "mitsuba")
 
 
