@@ -2,7 +2,8 @@
 # JAX-tracer evaluation needs none):
 # 1. `evaluate` of room's and dark's whole test splits (120 test + 90 spread posteriors each) with the JAX
 #    tracer at 64 particles, both at once, 4 workers each sharing the GPU; the caches come back as .txz (split in 15 MB parts)
-#    (a run cut short resumes from them anywhere: mitsuba-p3 evaluate ... --renderer jax --particles 64);
+#    (they record .devdata paths, so they resume only there: a run folder refuses a data set in another folder;
+#    device_evaluate.sh places the data at this machine's paths instead);
 # 2. seconds per P3 posterior under today's default (shading fields, up to two rounds) at the CPU's 64
 #    particles, 8 room test images (every 10th), one process, the last profiled.
 # Data: python results/gpu/prepare_devdata.py data/room-lo data/models/room-white, and the two data sets
