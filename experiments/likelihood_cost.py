@@ -48,7 +48,8 @@ def parts(core: PosteriorCore, observation: dict, batch: int) -> dict:
     if core.config.fields is not None:
         objects = jax.jit(jax.vmap(lambda p: core.objects(p, observation)))
         out["object_pixels"] = seconds(objects, z)   # the JAX tracer's (Mitsuba's come with its render)
-        density = jax.jit(lambda r, o: score(observation, r, core.config, None, o))
+        colours = core.params(z)["colour"]       # (tinted fields load on them)
+        density = jax.jit(lambda r, o: score(observation, r, core.config, None, o, colours))
         out["density"] = seconds(density, images, covered)
     else:
         out["density"] = seconds(jax.jit(lambda r: score(observation, r, core.config, None)), images)

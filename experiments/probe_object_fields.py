@@ -22,14 +22,15 @@ marginal likelihood on the first half of the train images at their true geometry
 1 / (correlation area of the residuals left after the fields' posterior mean), the composite
 likelihood's adjustment for what correlation remains. Then, on the other half, the log-likelihood
 drop against the truth of: the object shifted 1, 2, 5, 10 mm, absent (300 mm away), each other
-shape at the true pose and material, and each other colour's fitted material of the same kind at the
-true pose and shape (the nearest wrong colour: how much colour evidence the form keeps). Both forms
+shape at the true pose and material, the true colour washed halfway out towards the gray of its own
+brightness (what an achromatic field on a flat face forgives), and each other colour's fitted material of
+the same kind at the true pose and shape (the nearest wrong colour: how much colour evidence the form keeps). Both forms
 are printed side by side; larger drops for a wrong shape or an absent object, at the same drops for
 small shifts, is what a likelihood that keeps the
 outline should show.
 
     python experiments/probe_object_fields.py data/studio-lo --model data/models/studio-lo [--images 24]
-        [--degree 1] [--regions split|joint] [--channels independent|achromatic|mixed]
+        [--degree 1] [--regions split|joint] [--channels independent|achromatic|mixed|tinted] [--tint colour|render]
 """
 from __future__ import annotations
 
@@ -39,7 +40,7 @@ import json
 import numpy as np
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.fit.model import FittedModel, shot_params
-from mitsuba_p3.fit.fields import CHANNELS, field_log_likelihood, fit_fields, monomials
+from mitsuba_p3.fit.fields import CHANNELS, FieldsNoise, field_log_likelihood, fit_fields, colour_tint, monomials, object_tint
 from mitsuba_p3.fit.noise import SCORING_WINDOW
 from mitsuba_p3.infer.model import PosteriorCore
 from mitsuba_p3.infer.posterior import default_likelihood
@@ -75,7 +76,10 @@ def main() -> None:
     parser.add_argument("--regions", choices=("split", "joint"), default="split",
                         help="fields on the object and on its shadow apart (split) or on both as one region")
     parser.add_argument("--channels", choices=CHANNELS, default="independent",
-                        help="fields per colour channel, shared by the three (achromatic), or a shared constant")
+                        help="fields per colour channel, shared by the three (achromatic), a shared constant "
+                             "(mixed), or the object's in its own colour (tinted)")
+    parser.add_argument("--tint", choices=("colour", "render"), default="colour",
+                        help="tinted fields: the object's colour parameter, or the colour its render shows")
     args = parser.parse_args()
     dataset, fitted = load_dataset(args.dataset), FittedModel(args.model)
     core = PosteriorCore(fitted, default_likelihood(fitted, "p3", noise="fitted"), "mitsuba", *dataset.resolution)
@@ -95,6 +99,12 @@ def main() -> None:
         masks = masks_of(core, params, render, empty_full[crop], crop)
         return image[crop], render, masks if args.regions == "split" else np.stack([masks.sum(0), 0 * masks[0]])
 
+    def tint_of(render, masks, params):
+        if args.tint == "render":
+            return object_tint(render, masks[0])
+        colour = np.clip(np.asarray(params["colour"], np.float64), 0.0, 1.0)
+        return colour_tint(colour)
+
     cases, missed = [], []
     for n, shot in enumerate(shots):
         truth = shot_params(shot, fitted.materials)
@@ -103,37 +113,41 @@ def main() -> None:
             missed.append(f"{shot.class_name}/{shot.index}")
             continue
         image, render, masks = parts
-        cases.append((shot, truth, image - render, masks))
+        cases.append((shot, truth, image - render, tint_of(render, masks, truth), masks))
     if missed:
         print(json.dumps({"no footprint window (skipped)": missed}), flush=True)
     fit_half, probe_half = cases[0::2], cases[1::2]
 
     # maximum marginal likelihood of sigma and the taus on the first half
-    noise, figures = fit_fields(np.stack([r for *_, r, _ in fit_half]), np.stack([m for *_, m in fit_half]),
-                                args.degree, args.channels)
-    variances, loading, fitted_power = noise.variances(), noise.loadings(), float(core.config.power)
+    noise, figures = fit_fields(np.stack([r for *_, r, _, _ in fit_half]), np.stack([m for *_, m in fit_half]),
+                                args.degree, args.channels, tints=np.stack([t for *_, t, _ in fit_half]))
+    variances, fitted_power = noise.variances(), float(core.config.power)
     print(json.dumps({"fitted_power": fitted_power, **figures}), flush=True)
 
-    def fields(r, masks):
+    def fields(r, masks, tint):
+        loading = noise.loadings(tint) if noise.channels == "tinted" else noise.loadings()
         return noise.power * float(field_log_likelihood(r, masks, noise.sigma, variances, basis, loading=loading))
 
-    names = [f"{s:g}mm" for s in SHIFTS_MM] + [f"shape{k}" for k in range(3)]
+    names = [f"{s:g}mm" for s in SHIFTS_MM] + [f"shape{k}" for k in range(3)] + ["washed out"]
     drops, true_shapes = {"fitted": [], "fields": []}, []
-    for shot, truth, r0, B0 in probe_half:
+    for shot, truth, r0, t0, B0 in probe_half:
         variants = [dict(truth, shift=truth["shift"] + np.array([s / 1000, 0], np.float32)) for s in SHIFTS_MM]
         variants += [dict(truth, kappa=np.int32(k)) for k in range(3)]
         kind = shot.cls.material
         others = [key for key in fitted.materials if key.endswith("-" + kind) and key != f"{shot.cls.colour}-{kind}"]
+        # the true colour washed halfway out towards the gray of its own brightness
+        grey = np.full(3, float(np.mean(truth["colour"])), np.float32)
+        variants.append(dict(truth, colour=np.asarray(0.5 * truth["colour"] + 0.5 * grey, np.float32)))
         variants += [dict(truth, **{k: np.asarray(v, np.float32) for k, v in fitted.materials[key].items()})
                      for key in others]
         base = {"fitted": fitted_power * gaussian_log_likelihood(r0, core.config.sigma),
-                "fields": fields(r0, B0)}
+                "fields": fields(r0, B0, t0)}
         row = {"fitted": [], "fields": []}
         for params in variants:
             image, render, masks = window_parts(shot, params)
             r = image - render
             row["fitted"].append(base["fitted"] - fitted_power * gaussian_log_likelihood(r, core.config.sigma))
-            row["fields"].append(base["fields"] - fields(r, masks))
+            row["fields"].append(base["fields"] - fields(r, masks, tint_of(render, masks, params)))
         for form in drops:
             drops[form].append(row[form])
         true_shapes.append(int(truth["kappa"]))
@@ -145,13 +159,16 @@ def main() -> None:
     for form, rows in drops.items():
         shifts = np.asarray([row[:len(SHIFTS_MM)] for row in rows])
         shapes = np.asarray([row[len(SHIFTS_MM):len(SHIFTS_MM) + 3] for row in rows])
-        colours = np.asarray([min(row[len(SHIFTS_MM) + 3:], default=np.nan) for row in rows])
+        washed = np.asarray([row[len(SHIFTS_MM) + 3] for row in rows])
+        colours = np.asarray([min(row[len(SHIFTS_MM) + 4:], default=np.nan) for row in rows])
         own = np.arange(3)[None] == np.asarray(true_shapes)[:, None]
         wrong = np.where(own, np.inf, shapes).min(axis=1)                       # the nearest other shape
         summary[form] = {**{f"median drop {n}": round(float(np.median(shifts[:, i])), 1)
                             for i, n in enumerate(names[:len(SHIFTS_MM)])},
                          "median drop, nearest wrong shape": round(float(np.median(wrong)), 1),
                          "median drop, nearest wrong colour (same kind)": round(float(np.nanmedian(colours)), 1),
+                         "median drop, true colour washed halfway out": round(float(np.median(washed)), 1),
+                         "images where the washed-out colour beats the truth": int(np.sum(washed < 0)),
                          "images where a wrong colour beats the truth": int(np.sum(colours < 0)),
                          "images where a wrong shape beats the truth": int(np.sum(wrong < 0)),
                          "images where absent is cheaper than 2 mm": int(np.sum(shifts[:, 4] < shifts[:, 1])),

@@ -113,10 +113,10 @@ def test_the_fit_seed_sets_the_lights_random_start():
     assert SceneOptConfig().seed == 777
 
 
-def test_several_starts_keep_the_one_the_noise_model_explains_best(tiny_dataset, tmp_path):
+def test_several_starts_keep_the_one_the_noise_model_explains_best(tiny_dataset, tmp_path, monkeypatch):
     """fit --seed 1,2: each start is fitted into starts/seed-S; the model keeps the start with the highest train
     log likelihood under its fitted shading fields (its files and figures), lists both, and a second call reads the
-    finished starts instead of refitting them."""
+    finished starts instead of refitting them (their noise stage alone when their fields are of another loading)."""
     out, phases = tmp_path / "multi", set()
     model = fit_model(tiny_dataset, out, stages=("scene", "noise"), scene_config=SceneOptConfig(**TINY_FIT),
                       seeds=[1, 2], progress=lambda phase, *figures: phases.add(phase))
@@ -136,6 +136,15 @@ def test_several_starts_keep_the_one_the_noise_model_explains_best(tiny_dataset,
     stamp = (kept / "scene.npz").stat().st_mtime_ns
     fit_model(tiny_dataset, out, stages=("scene",), scene_config=SceneOptConfig(**TINY_FIT), seeds=[1, 2])
     assert (kept / "scene.npz").stat().st_mtime_ns == stamp
+    # shading fields of another loading: each start's noise stage alone is fitted again, its scene read
+    import mitsuba_p3.fit.fields as fields_module
+
+    assert FittedModel(kept).noise.fields["channels"] == fields_module.FIT_CHANNELS
+    monkeypatch.setattr(fields_module, "FIT_CHANNELS", "achromatic")
+    fit_model(tiny_dataset, out, stages=("scene",), scene_config=SceneOptConfig(**TINY_FIT), seeds=[1, 2])
+    assert (kept / "scene.npz").stat().st_mtime_ns == stamp
+    assert FittedModel(kept).noise.fields["channels"] == FittedModel(out).noise.fields["channels"] == "achromatic"
+    monkeypatch.undo()
     # other settings: the starts are refitted, not read
     fit_model(tiny_dataset, out, stages=("scene",), scene_config=SceneOptConfig(**{**TINY_FIT, "epochs": 1}),
               seeds=[1, 2])
@@ -548,8 +557,8 @@ def test_shading_fields_density_is_the_marginal_gaussian_and_its_fit_recovers_th
     import jax.numpy as jnp
     from scipy.stats import multivariate_normal
 
-    from mitsuba_p3.fit.fields import (CHANNELS, FieldsNoise, field_log_likelihood, fit_fields, loadings,
-                                       monomials, sample_fields)
+    from mitsuba_p3.fit.fields import (CHANNELS, FieldsNoise, colour_tint, field_log_likelihood, fit_fields,
+                                       loadings, monomials, sample_fields, tinted_loadings)
 
     rng = np.random.default_rng(5)
     size = (5, 6)
@@ -578,6 +587,34 @@ def test_shading_fields_density_is_the_marginal_gaussian_and_its_fit_recovers_th
         drops[channels] = float(field_log_likelihood(residual, masks, 0.1, variances, basis, loading=loading)
                                 - field_log_likelihood(red, masks, 0.1, variances, basis, loading=loading))
     assert drops["achromatic"] > 5 + 2 * drops["independent"]
+    # tinted fields: achromatic on the floor, in the object's own colour on the object; the same density
+    # column by column, the achromatic one for a gray object, and they forgive a shade of the object's own
+    # colour but not a wash-out towards gray, which the achromatic fields forgive
+    base = loadings(1, "tinted")
+    np.testing.assert_array_equal(base, loadings(1, "achromatic"))
+    variances = per_monomial[:, base.any(axis=2).argmax(axis=1)]
+
+    def tinted(r, colour):
+        return field_log_likelihood(r, masks, 0.1, variances, basis, loading=tinted_loadings(base, colour_tint(colour), 2))
+
+    green = np.array([0.1, 0.8, 0.1])
+    loading = tinted_loadings(base, colour_tint(green), 2)                       # (regions, columns, k, 3)
+    design = np.stack([(m[..., None, None] * basis[..., :, None] * column[None, None]).sum(axis=2).reshape(-1)
+                       for m, region in zip(masks, loading) for column in region], axis=1)
+    covariance = 0.1 ** 2 * np.eye(90) + design @ np.diag(variances.reshape(-1)) @ design.T
+    exact = multivariate_normal(np.zeros(90), covariance).logpdf(residual.reshape(-1))
+    assert tinted(residual, green) == pytest.approx(exact, rel=1e-10)
+    ours = field_log_likelihood(jnp.asarray(residual[None], jnp.float32), jnp.asarray(masks[None]), 0.1, variances,
+                                basis, xp=jnp, loading=tinted_loadings(base, colour_tint(jnp.asarray(green[None]), jnp),
+                                                                        2, jnp))
+    assert float(ours[0]) == pytest.approx(exact, rel=1e-5)
+    achromatic = field_log_likelihood(residual, masks, 0.1, variances, basis, loading=base)
+    assert tinted(residual, np.full(3, 0.4)) == pytest.approx(achromatic, rel=1e-12)
+    shade = residual + 0.3 * masks[0][..., None] * green
+    washed = residual - 0.3 * masks[0][..., None] * np.ones(3) / 3
+    tinted_drops = [tinted(residual, green) - tinted(r, green) for r in (shade, washed)]
+    achromatic_washed = achromatic - field_log_likelihood(washed, masks, 0.1, variances, basis, loading=base)
+    assert tinted_drops[1] > 2 + tinted_drops[0] and tinted_drops[1] > 2 + achromatic_washed
     # residuals drawn from the model: a constant and a tilt on an object, a constant on its shadow
     size, count = (40, 48), 120            # (the correlation area needs windows well above its 12-pixel lags)
     truth = FieldsNoise(0.02, (0.1, 0.05, 0.03, 0.01), 1, 1.0, size)
@@ -596,6 +633,16 @@ def test_shading_fields_density_is_the_marginal_gaussian_and_its_fit_recovers_th
     assert fitted.taus[3] == pytest.approx(truth.taus[3], rel=0.5)
     # what the fields explain is gone: the residual left is white noise
     assert figures["correlation_area_window"] > 3 and figures["correlation_area_after_fields"] < 1.3
+    # tinted fields: drawn in each window's own colour, recovered given the tints
+    colours = rng.uniform(0.05, 1.0, (count, 3))
+    tints = colour_tint(colours)
+    loading = tinted_loadings(loadings(1, "tinted"), tints, 2)
+    truth = FieldsNoise(0.02, (0.1, 0.05, 0.03, 0.01), 1, 1.0, size, "tinted")
+    residuals = np.stack([sample_fields(m, truth.variances(), basis, rng, one) for m, one in zip(masks, loading)])
+    residuals += truth.sigma * rng.normal(size=(count,) + size + (3,))
+    fitted, _ = fit_fields(residuals, masks, degree=1, channels="tinted", tints=tints)
+    assert fitted.sigma == pytest.approx(truth.sigma, rel=0.02)
+    np.testing.assert_allclose(fitted.taus[:3], truth.taus[:3], rtol=0.15)
 
 
 def test_the_fields_power_tempers_the_pixels_and_leaves_the_fields_prior_as_fitted():

@@ -711,7 +711,7 @@ def test_the_shading_fields_likelihood_traces_the_object_it_scores(fitted):
         assert np.array_equal(np.asarray(rendered), objects) and np.array_equal(np.asarray(with_bases), objects)
         render = jnp.asarray(renderer.render(params)[crop][None])
         expected = float(fields_log_likelihood(observation["image"], render, objects[None], observation["empty"],
-                                               likelihood)[0])
+                                               likelihood, jnp.asarray(params["colour"])[None])[0])
         assert float(core.log_likelihood(z, observation)) == pytest.approx(expected, rel=1e-5)
         _, _, loglik, _ = core.scored_material_move(jax.random.PRNGKey(0), RWState(z, core.logdensity(z, observation)),
                                                     observation)
@@ -724,24 +724,32 @@ def test_the_shading_fields_likelihood_traces_the_object_it_scores(fitted):
     from mitsuba_p3.infer.model import contract_params
     from mitsuba_p3.space import SLICES
 
-    for channels in ("independent", "achromatic"):
+    for channels in ("independent", "achromatic", "tinted"):
         core = PosteriorCore(fitted, replace(likelihood, fields_channels=channels), "mitsuba", 120, 160)
         bases, objects = core._image(z, observation, bases=True)
-        gram = np.asarray(core._gram(bases, objects, observation, 1.0))
+        p = contract_params(core.prior, z)
+        gram = np.asarray(core._gram(bases, objects, observation, 1.0, p["colour"]))
         assert gram.shape == ((3, 4, 4) if channels == "independent" else (3, 3, 4, 4))
         full = gram if gram.ndim == 4 else np.einsum("cd,cij->cdij", np.eye(3), gram)
-        p = contract_params(core.prior, z)
         values = []
-        for shade in (np.ones(3), np.array([0.8, 0.95, 0.7])):
+        # (tinted fields load on the colour's tint: a change of brightness alone keeps the Gram's)
+        for shade in (np.ones(3), np.full(3, 0.85) if channels == "tinted" else np.array([0.8, 0.95, 0.7])):
             colour = p["colour"] * shade
             coefficients = np.stack([np.array([colour[c] * p["ambient"], colour[c] * p["diffuse"], p["specular"],
                                                -1.0]) for c in range(3)])
             image = (colour * (p["ambient"] * bases[..., 0, :] + p["diffuse"] * bases[..., 1, :])
                      + p["specular"] * bases[..., 2, :] + bases[..., 3, :])
             assert float(jnp.max(image)) < 1.0
-            values.append((float(core._score(image, objects, observation)),
+            values.append((float(core._score(image, objects, observation, z)),
                            -0.5 * np.einsum("ci,cdij,dj->", coefficients, full, coefficients)))
         assert values[0][0] - values[1][0] == pytest.approx(values[0][1] - values[1][1], rel=1e-3, abs=1e-3)
+        if channels == "tinted":
+            # the move's likelihood of the state it keeps is that state's own, under its own colour's tint
+            state, _, loglik, _ = core.scored_material_move(jax.random.PRNGKey(3), RWState(z, core.logdensity(
+                z, observation)), observation)
+            assert float(loglik) == pytest.approx(float(core.log_likelihood(state.position, observation)), rel=1e-4)
+            assert float(state.logdensity) == pytest.approx(float(core.logdensity(state.position, observation)),
+                                                            rel=1e-4)
         if channels == "achromatic":
             # the coupled colour conditional is the exact conditional where no colour is clipped: between two
             # of its draws the target and the proposal's density change alike

@@ -188,7 +188,8 @@ def simulate_scored(core, rng: np.random.Generator, window: tuple[int, int] | No
     objects = core.objects(jnp.asarray(z), observation)
     masks = fields_masks(jnp.asarray(clean[top:top + height, left:left + width]), objects, observation["empty"],
                          fields_regions(core.config))
-    variances, basis, loading = fields_form(core.config, height, width)
+    variances, basis, loading = fields_form(core.config, height, width,
+                                            colours=np.asarray(core.params(jnp.asarray(z))["colour"]))
     image[top:top + height, left:left + width] += sample_fields(np.asarray(masks), variances, basis, rng,
                                                                 loading).astype(np.float32)
     return image, truth, cls, where

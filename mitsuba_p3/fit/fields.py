@@ -40,7 +40,12 @@ wrong colour nearly as much as a wrong shade), ``achromatic`` (one field shared 
 channels: it brightens or darkens, it cannot change a hue), or ``mixed`` (the constant
 shared, the higher degrees per channel). A basis column is then a region mask times a
 monomial times a channel loading (:func:`loadings`), and the Woodbury solve runs over the
-columns of all three channels at once.
+columns of all three channels at once. ``tinted`` fields are achromatic on the floor's regions, and on
+the object's own pixels load on the hypothesis's colour c as c / mean(c) (:func:`colour_tint`; a gray
+object's loading is the achromatic one): they brighten or darken the object in its own colour, as an
+error in the light it receives would, and cannot wash its colour out towards gray. An achromatic constant on a flat face is a gray offset that trades
+freely against the colour's saturation, and the colour prior's pull to gray then desaturates a cube's or
+a cylinder's colour (docs/notebook.md, "A field that cannot wash a colour out").
 
 **The fit.** sigma and the taus maximise the marginal likelihood of the train split's
 residual windows at the true geometry (:func:`fit_fields`; scipy's L-BFGS over their
@@ -72,12 +77,16 @@ import numpy as np
 from ..small_linalg import cholesky, log_det, solve
 
 REGIONS = ("object", "shadow", "floor")   # a form uses the first 2 or all 3 (older models: 2)
-CHANNELS = ("independent", "achromatic", "mixed")
+CHANNELS = ("independent", "achromatic", "mixed", "tinted")
 # the loading the noise stage fits: independent fields forgive a wrong colour (on fsclvr's and studio's train
 # images the nearest wrong colour of the same kind cost 4-9 nats against the fitted Gaussian's 186-222, and
 # beat the truth in 3-4 of 12); achromatic ones keep it (193 both) and keep most of the outline's gain
-# (experiments/probe_object_fields.py --channels; results/fields/README.md)
-FIT_CHANNELS = "achromatic"
+# (experiments/probe_object_fields.py --channels; results/fields/README.md), but let a flat face's colour wash
+# out towards gray; tinted ones explain the train residuals better (marginal log likelihood per pixel on 24
+# train windows, dark 7.79 against 7.58, room 6.39 against 6.30; the correlation they leave 46 against 68 and
+# 24 against 35 pixels) and a wash-out beats the truth in 1 of dark's 24 probed images against 4
+# (docs/notebook.md, "A field that cannot wash a colour out")
+FIT_CHANNELS = "tinted"
 # how many of REGIONS the noise stage fits fields on (2: object and shadow; 3: and the rest of the floor)
 FIT_REGIONS = 3
 # where the likelihood's power acts (module docstring, "The power"): on the pixels given the fields; the form
@@ -115,9 +124,15 @@ class FieldsNoise:
         """(regions, K) tau^2 of every basis column (:func:`loadings`' columns)."""
         return column_variances(self.taus, self.degree, self.channels)
 
-    def loadings(self) -> np.ndarray:
-        """(K, k, 3) the basis columns' loadings (:func:`loadings`)."""
-        return loadings(self.degree, self.channels)
+    def loadings(self, tint=None, xp=np):
+        """(K, k, 3) the basis columns' loadings (:func:`loadings`); for ``tinted`` fields, per region
+        (..., R, K, k, 3) given the object's ``tint`` (..., 3) (:func:`tinted_loadings`)."""
+        base = loadings(self.degree, self.channels)
+        if self.channels != "tinted":
+            return base
+        if tint is None:
+            raise ValueError("tinted shading fields need the object's tint (colour_tint of its colour)")
+        return tinted_loadings(base, tint, self.regions, xp)
 
     @property
     def regions(self) -> int:
@@ -148,12 +163,13 @@ def loadings(degree: int, channels: str = "independent") -> np.ndarray:
     """(K, k, 3): basis column j of a region is sum over monomials m and channels c of L[j, m, c] times
     the region's mask times monomial m in channel c. ``independent``: a column per monomial and
     channel; ``achromatic``: a column per monomial, the same in the three channels; ``mixed``: the
-    constant achromatic, the other monomials per channel."""
+    constant achromatic, the other monomials per channel; ``tinted``: the achromatic columns, which
+    :func:`tinted_loadings` colours on the object's region."""
     if channels not in CHANNELS:
         raise ValueError(f"unknown fields channels {channels!r}; choose {', '.join(CHANNELS)}")
     columns = []
     for m, total in enumerate(_degrees(degree)):
-        if channels == "achromatic" or (channels == "mixed" and total == 0):
+        if channels in ("achromatic", "tinted") or (channels == "mixed" and total == 0):
             column = np.zeros((len(_degrees(degree)), 3))
             column[m] = 1.0
             columns.append(column)
@@ -163,6 +179,37 @@ def loadings(degree: int, channels: str = "independent") -> np.ndarray:
                 column[m, c] = 1.0
                 columns.append(column)
     return np.stack(columns)
+
+
+def object_tint(renders, objects, xp=np):
+    """(..., 3) the colour renders (..., h, w, 3) give the pixels their object covers (``objects`` (..., h, w),
+    0/1), scaled so that its channels' mean is 1: (1, 1, 1) for a gray object, as for an achromatic field.
+    A render with no object pixels, or a black one, gets (1, 1, 1). The likelihood reads the colour
+    parameter's tint (:func:`colour_tint`); this one, which also carries the light's colour and the
+    highlight, is ``experiments/probe_object_fields.py --tint render``'s."""
+    renders = xp.asarray(renders)
+    weights = xp.asarray(objects, renders.dtype)[..., None]
+    total = xp.sum(renders * weights, axis=(-3, -2))                                    # (..., 3)
+    mean = xp.mean(total, axis=-1, keepdims=True)
+    return xp.where(mean > 1e-6, total / xp.maximum(mean, 1e-6), xp.ones_like(total))
+
+
+def colour_tint(colour, xp=np):
+    """(..., 3) the tint of an object of colour ``colour`` (..., 3), clipped to [0, 1] as the renderer
+    reads it, scaled so that its channels' mean is 1 (:func:`object_tint`'s scale); black: (1, 1, 1)."""
+    colour = xp.clip(xp.asarray(colour), 0.0, 1.0)
+    mean = xp.mean(colour, axis=-1, keepdims=True)
+    return xp.where(mean > 1e-6, colour / xp.maximum(mean, 1e-6), xp.ones_like(colour))
+
+
+def tinted_loadings(base, tint, regions: int, xp=np):
+    """(..., R, K, k, 3) per-region loadings of ``tinted`` fields: the object's region (the first) the
+    achromatic ``base`` (K, k, 3) times ``tint`` (..., 3) channel by channel, the other regions ``base``."""
+    base = xp.asarray(base)
+    tint = xp.asarray(tint, base.dtype)
+    coloured = base * tint[..., None, None, :]                                          # (..., K, k, 3)
+    plain = xp.broadcast_to(base, coloured.shape)
+    return xp.stack([coloured] + [plain] * (regions - 1), axis=-4)
 
 
 def column_variances(taus, degree: int, channels: str = "independent") -> np.ndarray:
@@ -198,11 +245,14 @@ def field_statistics(residual, masks, basis, xp=np) -> tuple:
 
 
 def column_statistics(statistics: tuple, loading, xp=np) -> tuple:
-    """:func:`field_statistics` over the basis columns of ``loading`` (K, k, 3): (r'r, G (..., R, K, K),
-    b (..., R, K), count). Columns in different channels are orthogonal; each channel's monomials share
-    the per-channel Gram matrix."""
+    """:func:`field_statistics` over the basis columns of ``loading`` (K, k, 3), or per region and window
+    (..., R, K, k, 3): (r'r, G (..., R, K, K), b (..., R, K), count). Columns in different channels are
+    orthogonal; each channel's monomials share the per-channel Gram matrix."""
     squares, gram, projected, count = statistics
     loading = xp.asarray(loading, gram.dtype)
+    if loading.ndim > 3:            # per region (and per window): tinted fields (..., R, K, k, 3)
+        full = xp.einsum("...rjmc,...rinc,...rmn->...rji", loading, loading, gram)
+        return squares, full, xp.einsum("...rjmc,...rmc->...rj", loading, projected), count
     full = xp.einsum("jmc,inc,...mn->...ji", loading, loading, gram)
     return squares, full, xp.einsum("jmc,...mc->...j", loading, projected), count
 
@@ -241,28 +291,35 @@ def field_log_likelihood(residual, masks, sigma: float, variances, basis, xp=np,
     value, means = marginal_log_likelihood(statistics, sigma, variances, xp, solved=True, loading=loading)
     if not left:
         return value
-    mean_field = xp.einsum("...rhw,hwm,jmc,...rj->...hwc", xp.asarray(masks, means.dtype),
-                           xp.asarray(basis, means.dtype), xp.asarray(loading, means.dtype), means)
+    loading = xp.asarray(loading, means.dtype)
+    if loading.ndim == 3:           # shared by the regions
+        loading = xp.broadcast_to(loading, (np.shape(masks)[-3],) + loading.shape)
+    mean_field = xp.einsum("...rhw,hwm,...rjmc,...rj->...hwc", xp.asarray(masks, means.dtype),
+                           xp.asarray(basis, means.dtype), loading, means)
     return value, xp.asarray(residual) - mean_field
 
 
 def sample_fields(masks, variances, basis, rng: np.random.Generator, loading=None) -> np.ndarray:
     """One draw of the fields B w (h, w, 3) on region masks (R, h, w): w ~ N(0, ``variances``) (R, K) over
-    the columns of ``basis`` (h, w, k) and ``loading`` (K, k, 3; default: independent channels); with white
-    noise of the form's sigma added, a residual window the model would make (simulation-based
-    calibration simulates its images so)."""
+    the columns of ``basis`` (h, w, k) and ``loading`` (K, k, 3, or per region (R, K, k, 3); default:
+    independent channels); with white noise of the form's sigma added, a residual window the model would
+    make (simulation-based calibration simulates its images so)."""
     if loading is None:
         loading = loadings(_degree_of(np.shape(basis)[-1]))
     variances = np.asarray(variances, np.float64)
     weights = rng.standard_normal(variances.shape) * np.sqrt(variances)
-    return np.einsum("rhw,hwm,jmc,rj->hwc", np.asarray(masks, np.float64), np.asarray(basis, np.float64),
-                     np.asarray(loading, np.float64), weights)
+    loading = np.asarray(loading, np.float64)
+    if loading.ndim == 3:
+        loading = np.broadcast_to(loading, (variances.shape[0],) + loading.shape)
+    return np.einsum("rhw,hwm,rjmc,rj->hwc", np.asarray(masks, np.float64), np.asarray(basis, np.float64),
+                     loading, weights)
 
 
 def fit_fields(residuals: np.ndarray, masks: np.ndarray, degree: int = 1,
-               channels: str = "independent") -> tuple[FieldsNoise, dict]:
+               channels: str = "independent", tints: np.ndarray | None = None) -> tuple[FieldsNoise, dict]:
     """The fields model of residual windows (N, h, w, 3) with region masks (N, R, h, w), by maximum marginal
-    likelihood (module docstring), and figures: the correlation area before and after the fields."""
+    likelihood (module docstring), and figures: the correlation area before and after the fields. ``tinted``
+    fields need each window's object ``tints`` (N, 3) (:func:`object_tint` of the renders)."""
     from scipy.optimize import minimize
 
     from .noise import correlation_area
@@ -272,6 +329,10 @@ def fit_fields(residuals: np.ndarray, masks: np.ndarray, degree: int = 1,
     height, width = residuals.shape[1:3]
     basis = monomials(height, width, degree)
     loading = loadings(degree, channels)
+    if channels == "tinted":
+        if tints is None or len(tints) != len(residuals):
+            raise ValueError("tinted shading fields are fitted with each window's object tint (object_tint)")
+        loading = tinted_loadings(loading, np.asarray(tints, np.float64), masks.shape[1])
     groups = masks.shape[1] * (degree + 1)
 
     def model(log_params) -> FieldsNoise:

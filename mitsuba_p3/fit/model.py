@@ -313,26 +313,36 @@ def start_figures(model: FittedModel) -> dict:
             "fields_log_likelihood_per_pixel": noise["fields"]["log_likelihood_per_pixel"]}
 
 
-def _finished_start(folder: Path, config: SceneOptConfig) -> bool:
-    """Whether ``folder`` holds a start fitted to the end (its noise stage) under ``config``."""
+def _start_stages_left(folder: Path, config: SceneOptConfig) -> tuple[str, ...]:
+    """The stages a start in ``folder`` still needs under ``config``: none when its scene was fitted under
+    ``config`` and its noise stage has shading fields of today's loading
+    (:data:`~mitsuba_p3.fit.fields.FIT_CHANNELS`: the starts are compared by their fields' likelihood);
+    the noise stage alone when only that is missing or of another loading."""
+    from .fields import FIT_CHANNELS
+
     path = folder / "model.json"
     stages = json.loads(path.read_text()).get("stages", {}) if path.is_file() else {}
-    return "noise" in stages and stages.get("scene", {}).get("config") == json.loads(json.dumps(asdict(config)))
+    if stages.get("scene", {}).get("config") != json.loads(json.dumps(asdict(config))):
+        return ("scene", "noise")
+    fields = (stages.get("noise") or {}).get("fields") or {}
+    return () if fields.get("channels") == FIT_CHANNELS else ("noise",)
 
 
 def _keep_best_start(root: Path, dataset: Dataset, seeds: Sequence[int], scene_config: SceneOptConfig,
                      progress) -> None:
     """Fit the scene and noise stages from every seed into ``root/starts/seed-S`` (a start finished
-    under the same settings is read, not refitted: a killed fit resumes), then copy the best start's
+    under the same settings is read, not refitted: a killed fit resumes; one whose fields are of an older
+    loading has its noise stage fitted again), then copy the best start's
     files into ``root`` and record every start's figures in its scene stage."""
     rows = []
     for seed in seeds:
         folder, config = root / "starts" / f"seed-{seed}", replace(scene_config, seed=seed)
-        if not _finished_start(folder, config):
+        left = _start_stages_left(folder, config)
+        if left:
             folder.mkdir(parents=True, exist_ok=True)
             named = (lambda stage, *figures, seed=seed: progress(f"{stage} (start {seed})", *figures)) \
                 if progress else None
-            _run_stages(folder, dataset, ("scene", "noise"), config, 0, None, named)
+            _run_stages(folder, dataset, left, config, 0, None, named)
         rows.append(start_figures(FittedModel(folder)))
     best = max(rows, key=lambda row: row["fields_log_likelihood_per_pixel"])
     kept = FittedModel(root / "starts" / f"seed-{best['seed']}")
@@ -393,7 +403,9 @@ def _run_stages(root: Path, dataset: Dataset, stages: Sequence[str], scene_confi
         noise, figures, spectra = fit_noise(observations, renders,
                                             empty_render(model, *dataset.resolution, shadows=True), shadows=True,
                                             directions=pose_directions(model, dataset),
-                                            objects=silhouettes(model, dataset))
+                                            objects=silhouettes(model, dataset),
+                                            colours=np.stack([shot_params(shot, model.materials)["colour"]
+                                                              for shot in dataset.split("train")]))
         save_spectra(root / SPECTRUM_FILE, spectra)
         atomic_json(root / "noise.json", {"model": noise.as_dict(), "figures": figures})
         _record(root, dataset, "noise", {"model": noise.as_dict(), **figures,

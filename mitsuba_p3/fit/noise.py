@@ -199,14 +199,15 @@ def correlation_area(residuals: np.ndarray, max_lag: int = 12) -> float:
 
 def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, shadows: bool,
               windows: list[tuple[int, int]] | None = None, spectral_shrink: float = SPECTRAL_SHRINK,
-              directions: np.ndarray | None = None, objects: np.ndarray | None = None
-              ) -> tuple[NoiseModel, dict, dict]:
+              directions: np.ndarray | None = None, objects: np.ndarray | None = None,
+              colours: np.ndarray | None = None) -> tuple[NoiseModel, dict, dict]:
     """The noise model of (observed, rendered) image pairs (N, H, W, 3), given the empty-floor render
     (H, W, 3), figures about the fit, and the spectral form's spectra per window size (``windows``,
     default :data:`SCORING_WINDOW`, and the whole image); ``shadows`` says whether the renders had hard
     shadows; ``directions`` (N, P, H, W, 3), the renders' changes along the pose, give the sandwich
     power (:func:`pose_power`); ``objects`` (N, H, W), the pixels each render's object covers, give the
-    shading fields' form (:mod:`.fields`), fitted on the windows the sampler scores."""
+    shading fields' form (:mod:`.fields`), fitted on the windows the sampler scores; tinted fields also
+    need each render's object colour, ``colours`` (N, 3)."""
     residuals = np.asarray(observations, np.float64) - np.asarray(renders, np.float64)
     regions = object_pixels(np.asarray(renders), np.asarray(empty)).astype(int)     # 1: object or its shadow
     sigma, outlier, iterations = fit_mixture(residuals, regions)
@@ -223,11 +224,14 @@ def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, 
     if objects is not None:
         from dataclasses import replace
 
-        from .fields import FIT_CHANNELS, FIT_REGIONS, fit_fields
+        from .fields import FIT_CHANNELS, FIT_REGIONS, colour_tint, fit_fields
 
+        if FIT_CHANNELS == "tinted" and colours is None:
+            raise ValueError("tinted shading fields are fitted with each train render's object colour")
         fields, fields_figures = fit_fields(*field_windows(residuals, regions.astype(bool), np.asarray(objects, bool),
                                                            sizes[0], FIT_REGIONS),
-                                            channels=FIT_CHANNELS)
+                                            channels=FIT_CHANNELS,
+                                            tints=None if colours is None else colour_tint(np.asarray(colours)))
         model = replace(model, fields=fields.as_dict())
     figures = {"pixels": int(np.prod(residuals.shape[:-1])), "object_pixels": int(regions.sum()),
                "residual_rms": model.gaussian_sigma,

@@ -213,24 +213,33 @@ def fields_regions(config: LikelihoodConfig) -> int:
     return region_count(config.fields, config.fields_degree)
 
 
-def fields_form(config: LikelihoodConfig, height: int, width: int):
+def fields_form(config: LikelihoodConfig, height: int, width: int, colours=None, xp=np):
     """(tau^2 per region and basis column (R, K), the monomials (h, w, k), the columns' channel loadings
-    (K, k, 3)) of the config's shading fields (:mod:`mitsuba_p3.fit.fields`)."""
-    from ..fit.fields import FieldsNoise, monomials
+    (K, k, 3)) of the config's shading fields (:mod:`mitsuba_p3.fit.fields`). Tinted fields' loadings are
+    per region and object colour, (..., R, K, k, 3), and need the hypotheses' ``colours`` (..., 3)."""
+    from ..errors import ConfigError
+    from ..fit.fields import FieldsNoise, colour_tint, monomials
 
     noise = FieldsNoise(config.sigma, config.fields, config.fields_degree, config.power, (height, width),
                         config.fields_channels)
-    return noise.variances(), monomials(height, width, config.fields_degree), noise.loadings()
+    if noise.channels == "tinted":
+        if colours is None:
+            raise ConfigError("tinted shading fields need each hypothesis's object colour")
+        loading = noise.loadings(colour_tint(colours, xp), xp)
+    else:
+        loading = noise.loadings()
+    return noise.variances(), monomials(height, width, config.fields_degree), loading
 
 
-def fields_log_likelihood(observed, renders, objects, empty, config: LikelihoodConfig):
+def fields_log_likelihood(observed, renders, objects, empty, config: LikelihoodConfig, colours=None):
     """The shading fields' log likelihood of renders (B, h, w, 3) whose object covers ``objects`` (B, h, w)
-    -> (B,) (:mod:`mitsuba_p3.fit.fields`; the regions of :func:`fields_masks`)."""
+    and, for tinted fields, is of colour ``colours`` (B, 3) -> (B,) (:mod:`mitsuba_p3.fit.fields`; the
+    regions of :func:`fields_masks`)."""
     import jax.numpy as jnp
 
     from ..fit.fields import field_log_likelihood
 
-    variances, basis, loading = fields_form(config, *renders.shape[-3:-1])
+    variances, basis, loading = fields_form(config, *renders.shape[-3:-1], colours=colours, xp=jnp)
     residual = jnp.asarray(observed)[None] - renders
     masks = fields_masks(renders, objects, empty, fields_regions(config))
     return config.power * field_log_likelihood(residual, masks, config.sigma,
@@ -238,17 +247,19 @@ def fields_log_likelihood(observed, renders, objects, empty, config: LikelihoodC
 
 
 def score(observation: dict, renders, config: LikelihoodConfig, channels: list[Channel] | None = None,
-          objects=None):
+          objects=None, colours=None):
     """(B, H, W, 3) renders -> (B,) log-likelihoods of ``observation`` (JAX). An observation's own
     ``neural_weight`` entry, a number the compiled sampler takes as an argument, overrides the
     config's: the SMC's bridge from P3 to NP3 tempers the neural term in by it. The shading fields'
-    form also needs the pixels each render's object covers, ``objects`` (B, H, W)."""
+    form also needs the pixels each render's object covers, ``objects`` (B, H, W), and tinted fields
+    the object's colour parameter, ``colours`` (B, 3)."""
     if config.fields is not None:
         if objects is None:
             from ..errors import ConfigError
 
             raise ConfigError("the shading fields' likelihood needs the renders' object pixels")
-        log_lik = fields_log_likelihood(observation["image"], renders, objects, observation["empty"], config)
+        log_lik = fields_log_likelihood(observation["image"], renders, objects, observation["empty"], config,
+                                        colours)
     elif config.spectral:
         log_lik = spectral_log_likelihood(observation["image"], renders, observation, config)
     else:

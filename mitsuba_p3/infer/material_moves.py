@@ -150,7 +150,7 @@ class MaterialMoves:
 
         k_colour, k_weights, k_jump = jax.random.split(key, 3)
         bases, objects = self._image(state.position, observation, bases=True)
-        gram = self._gram(bases, objects, observation, tempering)
+        gram = self._gram(bases, objects, observation, tempering, self.params(state.position)["colour"])
         # the material moves leave the pose, so the window's term (mitsuba_p3.infer.window) and the object's
         # pixels are the state's throughout
         term = self.window_log_term(state.position, observation)
@@ -159,11 +159,19 @@ class MaterialMoves:
         if jump:
             state, jumped, bases, gram = self._kind_jump(k_jump, state, bases, gram, observation, target)
         state, colour_ok = self._colour_move(k_colour, state, bases, gram, observation, target)
+        if self._tinted:        # the fields' loading follows the colour: the weights' conditional takes the new one's
+            gram = self._gram(bases, objects, observation, tempering, self.params(state.position)["colour"])
         state, weights_ok = self._weights_move(k_weights, state, bases, gram, observation, target)
-        loglik = self._score(self._image_from_bases(bases, state.position), objects, observation) + term
+        loglik = self._score(self._image_from_bases(bases, state.position), objects, observation,
+                             state.position) + term
         return state, colour_ok & weights_ok, loglik, jumped
 
-    def _gram(self, bases, objects, observation, tempering):
+    @property
+    def _tinted(self) -> bool:
+        """Whether the likelihood's shading fields load on the object's colour (their Gram then depends on it)."""
+        return self.config.fields is not None and self.config.fields_channels == "tinted"
+
+    def _gram(self, bases, objects, observation, tempering, colour=None):
         """The tempered precision-weighted inner products of the bases A, D, S and the residual
         r = I_obs - F, each taken in one colour channel: both material conditionals need only these.
         (3, 4, 4) per channel where the noise keeps the channels apart; (3, 3, 4, 4) [c, c', i, j]
@@ -183,33 +191,35 @@ class MaterialMoves:
         # the Gaussian part of the likelihood (outliers are left to the MH test)
         gram = jnp.einsum("icjc->cij", full)
         if self.config.fields is not None:
-            correction = self._fields_correction(vectors, bases, objects, observation)  # (3, 3, 4, 4)
+            correction = self._fields_correction(vectors, bases, objects, observation, colour)  # (3, 3, 4, 4)
             if self.config.fields_channels == "independent":
                 gram = gram - jnp.einsum("ccij->cij", correction)
             else:
                 gram = jnp.einsum("cd,cij->cdij", jnp.eye(3, dtype=gram.dtype), gram) - correction
         return gram * precision
 
-    def _fields_correction(self, vectors, bases, objects, observation):
+    def _fields_correction(self, vectors, bases, objects, observation, colour=None):
         """(3, 3, 4, 4) [c, c', i, j] what the shading fields take off the inner products of vector i in
         channel c and vector j in channel c': under covariance sigma^2 I + B T B' the precision is
         (I - B (G + sigma^2 T^-1)^-1 B') / sigma^2, so x'Qy is the white x'y / sigma^2 less
         (B'x)' (G + sigma^2 T^-1)^-1 (B'y) / sigma^2 (:mod:`mitsuba_p3.fit.fields`). Zero for c != c' when
         every field is a single channel's. The regions are the pose's: its object's pixels, the floor
         its shadow changes, and the rest of the floor where the form has that region (the materials move
-        none of them)."""
+        none of them). Tinted fields load on the object's ``colour`` (3,) (:mod:`mitsuba_p3.fit.fields`)."""
         import jax.numpy as jnp
 
         from ..fit.fields import column_statistics, field_statistics
 
         height, width = vectors.shape[:2]
         masks = fields_masks(bases[..., 3, :], objects, observation["empty"], fields_regions(self.config))
-        variances, basis, loading = fields_form(self.config, height, width)
+        variances, basis, loading = fields_form(self.config, height, width, colours=colour, xp=jnp)
         statistics = field_statistics(jnp.moveaxis(vectors, -2, 0), masks, basis, xp=jnp)   # b: (4, R, k, 3)
         _, gram, _, _ = column_statistics(statistics, loading, xp=jnp)                       # (R, K, K)
         loading = jnp.asarray(loading, gram.dtype)
+        if loading.ndim == 3:           # shared by the regions
+            loading = jnp.broadcast_to(loading, (gram.shape[0],) + loading.shape)
         # B'x for vector i taken in channel c alone: (4, 3, R, K)
-        columns = jnp.einsum("jmc,irmc->icrj", loading, statistics[2])
+        columns = jnp.einsum("rjmc,irmc->icrj", loading, statistics[2])
         size = gram.shape[-1]
         inner = gram + (self.config.sigma ** 2 / jnp.asarray(variances, gram.dtype))[..., None] * jnp.eye(size)
         solved = small_linalg.solve(small_linalg.cholesky(inner, jnp), columns, jnp)        # (4, 3, R, K)
@@ -242,8 +252,8 @@ class MaterialMoves:
         position = state.position
         moved = position.at[s].set((alpha - loc) / std)
         new_bases, _ = self._image(moved, observation, bases=True)          # the same pose: the same objects
-        new_gram = self._gram(new_bases, target[3], observation, target[0])
         colour = self.params(position)["colour"]
+        new_gram = self._gram(new_bases, target[3], observation, target[0], colour)
         dims, w_loc, w_std = self._weight_coordinates()
         old, new = self._weights_conditional(gram, colour), self._weights_conditional(new_gram, colour)
         weights = new.draw(k_weights)
@@ -313,8 +323,12 @@ class MaterialMoves:
         proposal = conditional.draw(k_draw)
         current = jnp.asarray(gmm.mean) + jnp.asarray(gmm.std) * position[cols]
         new_position = position.at[cols].set((proposal - gmm.mean) / gmm.std)
+        reverse = conditional
+        if self._tinted:    # the conditional was built on the current colour's loading: the way back on the proposal's
+            new_gram = self._gram(bases, target[3], observation, target[0], self.params(new_position)["colour"])
+            reverse = self._coupled_colour_conditional(new_gram, slope, offset)
         return self._independence_mh(k_accept, state, new_position, bases,
-                                     conditional.log_q(current) - conditional.log_q(proposal), observation, target)
+                                     reverse.log_q(current) - conditional.log_q(proposal), observation, target)
 
     def _coupled_colour_conditional(self, gram, slope, offset):
         """The colour's conditional given the weights under coupled channels (``gram`` (3, 3, 4, 4)), the
@@ -386,7 +400,7 @@ class MaterialMoves:
         tempering, log_prior, term, objects = target
         image = self._image_from_bases(bases, new_position)
         new_logdensity = (log_prior(new_position)
-                          + tempering * (self._score(image, objects, observation) + term))
+                          + tempering * (self._score(image, objects, observation, new_position) + term))
         accept = jnp.log(jax.random.uniform(key)) < new_logdensity - state.logdensity + log_q_ratio
         return (type(state)(jnp.where(accept, new_position, state.position),
                             jnp.where(accept, new_logdensity, state.logdensity)), accept)

@@ -231,11 +231,13 @@ class PosteriorCore(MaterialMoves):
         covered = silhouette(params, jnp.asarray(origin), rays.reshape(-1, 3), self.renderer.floor_half_size)
         return covered.reshape(height, width)
 
-    def _score(self, image, objects, observation):
-        """The score of one render (h, w, 3) whose object covers ``objects`` (h, w; None unless the
-        likelihood needs them) (:func:`~mitsuba_p3.infer.likelihood.score`)."""
+    def _score(self, image, objects, observation, z):
+        """The score of one render (h, w, 3) of position z whose object covers ``objects`` (h, w; None
+        unless the likelihood needs them) (:func:`~mitsuba_p3.infer.likelihood.score`; tinted shading
+        fields read z's colour)."""
+        colours = self.params(z)["colour"][None] if self.config.fields_channels == "tinted" else None
         return score(observation, image[None], self.config, self.channels,
-                     None if objects is None else objects[None])[0]
+                     None if objects is None else objects[None], colours)[0]
 
     def _image(self, z, observation, bases: bool = False):
         """The render (or material bases) of z that ``observation`` scores -- its window, or the whole
@@ -274,14 +276,14 @@ class PosteriorCore(MaterialMoves):
 
     def image_log_likelihood(self, z, observation):
         """The score of z's render alone, without the window's term (the empty floor's evidence needs it)."""
-        return self._score(*self._image(z, observation), observation)
+        return self._score(*self._image(z, observation), observation, z)
 
     def log_likelihood_parts(self, z, observation):
         """(colour, whole) log likelihood of one position z from one render (JAX; vmap for many): the
         colour term alone, and with the neural term at the observation's weight (NP3's bridge)."""
         (image, objects), term = self._image(z, observation), self.window_log_term(z, observation)
-        return (self._score(image, objects, {**observation, "neural_weight": 0.0}) + term,
-                self._score(image, objects, observation) + term)
+        return (self._score(image, objects, {**observation, "neural_weight": 0.0}, z) + term,
+                self._score(image, objects, observation, z) + term)
 
     def logdensity(self, z, observation):
         """log p(z) + log p(I | z) of one position z (15,) (JAX; vmap for many)."""
