@@ -8,6 +8,11 @@ moves at lambda = 1, ``--steps`` times; their final states are compared with fre
 Prints one JSON line per hypothesis and move set.
 
     python experiments/geweke.py --model data/models/fsclvr-lo --resolution 60x80 --chains 400 --steps 20
+        [--noise fields] [--shapes cube] [--moves material]
+
+With ``--noise fields`` the images are simulated from the shading fields' form (the fields drawn on each
+chain's own object, shadow and floor, tinted by its colour where the model's fields are) and the moves
+score that form.
 """
 import argparse
 import json
@@ -23,17 +28,24 @@ def main() -> None:
     parser.add_argument("--moves", default="walk,material,both")
     parser.add_argument("--walk-scale", type=float, default=0.05)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--noise", default="fitted", choices=("fitted", "fields"),
+                        help="the likelihood simulated and sampled: the fitted Gaussian, or the shading fields' form")
+    parser.add_argument("--shapes", help="only these shape hypotheses (comma-separated names)")
     args = parser.parse_args()
     from mitsuba_p3.evaluate.geweke import geweke_check
     from mitsuba_p3.evaluate.sbc import model_core
     from mitsuba_p3.shapes import SHAPES
 
-    core = model_core(args.model, "jax", tuple(int(v) for v in args.resolution.split("x")))
+    core = model_core(args.model, "jax", tuple(int(v) for v in args.resolution.split("x")), args.noise)
     for hypothesis, shape in enumerate(SHAPES):
+        if args.shapes and shape not in args.shapes.split(","):
+            continue
         begin = time.perf_counter()
         result = geweke_check(core, hypothesis, tuple(args.moves.split(",")), args.chains, args.steps, args.seed,
                               args.walk_scale)
-        print(json.dumps({"model": args.model, "resolution": args.resolution, "sigma": core.config.sigma,
+        print(json.dumps({"model": args.model, "resolution": args.resolution, "noise": args.noise,
+                          "channels": core.config.fields_channels if args.noise == "fields" else None,
+                          "sigma": core.config.sigma,
                           "hypothesis": shape, "seconds": round(time.perf_counter() - begin, 1),
                           **result.summary()}), flush=True)
 

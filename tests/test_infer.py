@@ -1452,3 +1452,24 @@ def test_geweke_check_passes_the_smc_moves_and_catches_a_simulator_they_disagree
     finally:
         del core.render
     assert np.min(wrong.pvalues["material"]) < 1e-3, wrong.summary()
+
+
+@pytest.mark.slow
+def test_geweke_check_passes_the_material_moves_under_tinted_shading_fields(fitted):
+    """Under tinted shading fields the colour's conditional depends on the colour itself (the fields load
+    on it), so the colour move builds its way back on the proposal's loading. Simulated images carry the
+    fields drawn on each chain's own object (:func:`~mitsuba_p3.evaluate.geweke.field_draw`), and the
+    material moves keep prior draws prior draws."""
+    from dataclasses import replace
+
+    from mitsuba_p3.evaluate.geweke import geweke_check
+    from mitsuba_p3.fit.fields import FieldsNoise
+    from mitsuba_p3.infer.model import PosteriorCore
+    from mitsuba_p3.infer.posterior import default_likelihood
+
+    likelihood = default_likelihood(fitted, "p3", noise="fields")
+    assert FieldsNoise.from_dict(fitted.noise.fields).channels == "tinted"
+    core = PosteriorCore(fitted, replace(likelihood, fields_channels="tinted"), "jax", *RES)
+    right = geweke_check(core, hypothesis=1, move_sets=("material",), chains=150, steps=4)
+    assert np.min(right.pvalues["material"]) > 1e-3, right.summary()
+    assert right.acceptance["material"] > 0.2

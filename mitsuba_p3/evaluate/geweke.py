@@ -8,7 +8,10 @@ alternates
     y_t ~ p(y | z_t)               (render z_t and add the likelihood's noise)
     z_{t+1} ~ K(z_t, . ; y_t)      (one move of the sampler at lambda = 1)
 
-from z_0 drawn from the prior. If K leaves each posterior p(z | y) invariant, the pair (z_t, y_t)
+from z_0 drawn from the prior. Under the shading fields' form (:mod:`mitsuba_p3.fit.fields`) y_t is the
+render plus a draw of the fields on its object, shadow and floor (loaded on z_t's own colour where they
+are tinted) plus white noise: the density the sampler scores, so the check covers the fields' terms of
+the material update too. If K leaves each posterior p(z | y) invariant, the pair (z_t, y_t)
 keeps the joint p(z) p(y | z), so every z_t is again a prior draw, however many moves are made,
 whether or not K mixes well. A move with a wrong Hastings term, a conditional drawn from the wrong
 distribution, or a density that disagrees with the simulator drifts z_t away from the prior; the
@@ -86,10 +89,11 @@ def successive_conditional(core, hypothesis: int, moves: str, chains: int, steps
     lam = jnp.full(1, tempering, jnp.float32)
     centre = jnp.zeros(1, jnp.float32)        # the walk's symmetry chart: the copy within 45 degrees of yaw 0
     sigma = core.config.sigma / np.sqrt(core.config.power)
+    extra = {"empty": jnp.asarray(core.empty)} if core.config.fields is not None else {}
 
     def one(key, z, image):
         """One chain's moves given its image: rows of one particle."""
-        observation = {"image": image}
+        observation = {"image": image, **extra}
         state = k.score(z[None, None], index, observation)
         particles = (z[None, None], state[0], state[1])
         rates = []
@@ -104,16 +108,39 @@ def successive_conditional(core, hypothesis: int, moves: str, chains: int, steps
 
     step = jax.jit(jax.vmap(one))
     render = jax.jit(jax.vmap(core.render))
+    fields = jax.jit(jax.vmap(lambda key, z, image: field_draw(core, key, z, image)))
     z = jnp.asarray(start)
     key = jax.random.PRNGKey(seed)
     accepted = []
     for _ in range(steps):
-        key, k_noise, k_move = jax.random.split(key, 3)
+        key, k_noise, k_move, k_fields = jax.random.split(key, 4)
         images = render(z)
+        if extra:
+            images = images + fields(jax.random.split(k_fields, chains), z, images)
         images = images + sigma * jax.random.normal(k_noise, images.shape)
         z, rate = step(jax.random.split(k_move, chains), z, images)
         accepted.append(float(jnp.mean(rate)))
     return np.asarray(z), float(np.mean(accepted))
+
+
+def field_draw(core, key, z, render):
+    """One draw of the shading fields (h, w, 3) on the whole image ``render`` of position z: on its
+    object's pixels, the floor its shadow changes and the rest of the floor, w ~ N(0, tau^2) per column
+    (:func:`mitsuba_p3.fit.fields.sample_fields`, in JAX), loaded on z's colour where the fields are tinted."""
+    import jax
+    import jax.numpy as jnp
+
+    from ..infer.likelihood import fields_form, fields_masks, fields_regions
+
+    height, width = render.shape[:2]
+    masks = fields_masks(render, core.objects(z, {"image": render}), jnp.asarray(core.empty), fields_regions(core.config))
+    variances, basis, loading = fields_form(core.config, height, width, colours=core.params(z)["colour"], xp=jnp)
+    loading = jnp.asarray(loading, jnp.float32)
+    if loading.ndim == 3:           # shared by the regions
+        loading = jnp.broadcast_to(loading, (masks.shape[0],) + loading.shape)
+    weights = jax.random.normal(key, np.shape(variances)) * jnp.sqrt(jnp.asarray(variances, jnp.float32))
+    return jnp.einsum("rhw,hwm,rjmc,rj->hwc", masks.astype(jnp.float32), jnp.asarray(basis, jnp.float32), loading,
+                      weights)
 
 
 def geweke_check(core, hypothesis: int = 0, move_sets=("walk", "material"), chains: int = 400, steps: int = 10,
