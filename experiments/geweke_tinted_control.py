@@ -31,8 +31,11 @@ def broken_colour_move(self, key, state, bases, gram, observation, target, slope
     proposal = conditional.draw(k_draw)
     current = jnp.asarray(gmm.mean) + jnp.asarray(gmm.std) * position[cols]
     new_position = position.at[cols].set((proposal - gmm.mean) / gmm.std)
-    return self._independence_mh(k_accept, state, new_position, bases,
-                                 conditional.log_q(current) - conditional.log_q(proposal), observation, target)
+    state, accepted = self._independence_mh(k_accept, state, new_position, bases,
+                                            conditional.log_q(current) - conditional.log_q(proposal), observation,
+                                            target)
+    return state, accepted, jnp.where(accepted, self._gram(bases, target[3], observation, target[0],
+                                                           self.params(state.position)["colour"]), gram)
 
 
 def main() -> None:

@@ -158,9 +158,8 @@ class MaterialMoves:
         jumped = jnp.asarray(False)
         if jump:
             state, jumped, bases, gram = self._kind_jump(k_jump, state, bases, gram, observation, target)
-        state, colour_ok = self._colour_move(k_colour, state, bases, gram, observation, target)
-        if self._tinted:        # the fields' loading follows the colour: the weights' conditional takes the new one's
-            gram = self._gram(bases, objects, observation, tempering, self.params(state.position)["colour"])
+        # (tinted fields load on the colour: the weights' conditional takes the Gram of the colour kept)
+        state, colour_ok, gram = self._colour_move(k_colour, state, bases, gram, observation, target)
         state, weights_ok = self._weights_move(k_weights, state, bases, gram, observation, target)
         loglik = self._score(self._image_from_bases(bases, state.position), objects, observation,
                              state.position) + term
@@ -273,7 +272,8 @@ class MaterialMoves:
         return jnp.clip(p["colour"] * (p["ambient"] * A + p["diffuse"] * D) + p["specular"] * S + F, 0.0, 1.0)
 
     def _colour_move(self, key, state, bases, gram, observation, target):
-        """The colour's conditional given the weights: a 3-D Gaussian mixture (one per GMM component)."""
+        """The colour's conditional given the weights: a 3-D Gaussian mixture (one per GMM component).
+        Returns (state, accepted, the Gram matrices of the colour kept)."""
         import jax
         import jax.numpy as jnp
 
@@ -306,8 +306,8 @@ class MaterialMoves:
         proposal = post_mean[component] + jax.random.normal(k_noise, (3,)) / jnp.sqrt(post_precision[component])
         current = jnp.asarray(gmm.mean) + jnp.asarray(gmm.std) * position[cols]
         new_position = position.at[cols].set((proposal - gmm.mean) / gmm.std)
-        return self._independence_mh(k_accept, state, new_position, bases, log_q(current) - log_q(proposal),
-                                     observation, target)
+        return (*self._independence_mh(k_accept, state, new_position, bases, log_q(current) - log_q(proposal),
+                                       observation, target), gram)
 
     def _coupled_colour_move(self, key, state, bases, gram, observation, target, slope, offset):
         """:meth:`_colour_move` where the noise couples the channels (``gram`` (3, 3, 4, 4)): each GMM
@@ -323,12 +323,15 @@ class MaterialMoves:
         proposal = conditional.draw(k_draw)
         current = jnp.asarray(gmm.mean) + jnp.asarray(gmm.std) * position[cols]
         new_position = position.at[cols].set((proposal - gmm.mean) / gmm.std)
-        reverse = conditional
-        if self._tinted:    # the conditional was built on the current colour's loading: the way back on the proposal's
-            new_gram = self._gram(bases, target[3], observation, target[0], self.params(new_position)["colour"])
-            reverse = self._coupled_colour_conditional(new_gram, slope, offset)
-        return self._independence_mh(k_accept, state, new_position, bases,
-                                     reverse.log_q(current) - conditional.log_q(proposal), observation, target)
+        if not self._tinted:
+            return (*self._independence_mh(k_accept, state, new_position, bases, conditional.log_q(current)
+                                           - conditional.log_q(proposal), observation, target), gram)
+        # the conditional was built on the current colour's loading: the way back on the proposal's
+        new_gram = self._gram(bases, target[3], observation, target[0], self.params(new_position)["colour"])
+        reverse = self._coupled_colour_conditional(new_gram, slope, offset)
+        state, accepted = self._independence_mh(k_accept, state, new_position, bases,
+                                                reverse.log_q(current) - conditional.log_q(proposal), observation, target)
+        return state, accepted, jnp.where(accepted, new_gram, gram)
 
     def _coupled_colour_conditional(self, gram, slope, offset):
         """The colour's conditional given the weights under coupled channels (``gram`` (3, 3, 4, 4)), the
