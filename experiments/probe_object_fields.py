@@ -40,7 +40,7 @@ import json
 import numpy as np
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.fit.model import FittedModel, shot_params
-from mitsuba_p3.fit.fields import CHANNELS, FieldsNoise, field_log_likelihood, fit_fields, colour_tint, monomials, object_tint
+from mitsuba_p3.fit.fields import CHANNELS, colour_tint, field_log_likelihood, fit_fields, monomials
 from mitsuba_p3.fit.noise import SCORING_WINDOW
 from mitsuba_p3.infer.model import PosteriorCore
 from mitsuba_p3.infer.posterior import default_likelihood
@@ -51,6 +51,15 @@ SHIFTS_MM = (1.0, 2.0, 5.0, 10.0, 300.0)
 def gaussian_log_likelihood(r: np.ndarray, sigma: float) -> float:
     """The fitted form's density at power 1 (its truncation constant left out: it cancels in a drop)."""
     return float(-0.5 * np.sum(r * r) / sigma ** 2 - 0.5 * r.size * np.log(2 * np.pi * sigma ** 2))
+
+
+def object_tint(render: np.ndarray, objects: np.ndarray) -> np.ndarray:
+    """(3,) the colour a render (h, w, 3) gives the pixels its object covers (``objects`` (h, w)), scaled so
+    that its channels' mean is 1 (:func:`~mitsuba_p3.fit.fields.colour_tint`'s scale; (1, 1, 1) when the
+    object is absent or black): the tint with the light's colour and the highlight in it (``--tint render``)."""
+    total = np.sum(np.asarray(render, np.float64) * np.asarray(objects, np.float64)[..., None], axis=(0, 1))
+    mean = total.mean()
+    return total / mean if mean > 1e-6 else np.ones(3)
 
 
 def masks_of(core, params: dict, render: np.ndarray, empty: np.ndarray, crop) -> np.ndarray:

@@ -130,14 +130,13 @@ def field_draw(core, key, z, render):
     import jax
     import jax.numpy as jnp
 
+    from ..fit.fields import per_region
     from ..infer.likelihood import fields_form, fields_masks, fields_regions
 
     height, width = render.shape[:2]
     masks = fields_masks(render, core.objects(z, {"image": render}), jnp.asarray(core.empty), fields_regions(core.config))
     variances, basis, loading = fields_form(core.config, height, width, colours=core.params(z)["colour"], xp=jnp)
-    loading = jnp.asarray(loading, jnp.float32)
-    if loading.ndim == 3:           # shared by the regions
-        loading = jnp.broadcast_to(loading, (masks.shape[0],) + loading.shape)
+    loading = per_region(jnp.asarray(loading, jnp.float32), masks.shape[0], jnp)
     weights = jax.random.normal(key, np.shape(variances)) * jnp.sqrt(jnp.asarray(variances, jnp.float32))
     return jnp.einsum("rhw,hwm,rjmc,rj->hwc", masks.astype(jnp.float32), jnp.asarray(basis, jnp.float32), loading,
                       weights)

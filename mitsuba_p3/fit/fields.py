@@ -181,22 +181,10 @@ def loadings(degree: int, channels: str = "independent") -> np.ndarray:
     return np.stack(columns)
 
 
-def object_tint(renders, objects, xp=np):
-    """(..., 3) the colour renders (..., h, w, 3) give the pixels their object covers (``objects`` (..., h, w),
-    0/1), scaled so that its channels' mean is 1: (1, 1, 1) for a gray object, as for an achromatic field.
-    A render with no object pixels, or a black one, gets (1, 1, 1). The likelihood reads the colour
-    parameter's tint (:func:`colour_tint`); this one, which also carries the light's colour and the
-    highlight, is ``experiments/probe_object_fields.py --tint render``'s."""
-    renders = xp.asarray(renders)
-    weights = xp.asarray(objects, renders.dtype)[..., None]
-    total = xp.sum(renders * weights, axis=(-3, -2))                                    # (..., 3)
-    mean = xp.mean(total, axis=-1, keepdims=True)
-    return xp.where(mean > 1e-6, total / xp.maximum(mean, 1e-6), xp.ones_like(total))
-
-
 def colour_tint(colour, xp=np):
     """(..., 3) the tint of an object of colour ``colour`` (..., 3), clipped to [0, 1] as the renderer
-    reads it, scaled so that its channels' mean is 1 (:func:`object_tint`'s scale); black: (1, 1, 1)."""
+    reads it, scaled so that its channels' mean is 1 (a gray object's tint is (1, 1, 1), the achromatic
+    loading); black: (1, 1, 1)."""
     colour = xp.clip(xp.asarray(colour), 0.0, 1.0)
     mean = xp.mean(colour, axis=-1, keepdims=True)
     return xp.where(mean > 1e-6, colour / xp.maximum(mean, 1e-6), xp.ones_like(colour))
@@ -210,6 +198,13 @@ def tinted_loadings(base, tint, regions: int, xp=np):
     coloured = base * tint[..., None, None, :]                                          # (..., K, k, 3)
     plain = xp.broadcast_to(base, coloured.shape)
     return xp.stack([coloured] + [plain] * (regions - 1), axis=-4)
+
+
+def per_region(loading, regions: int, xp=np):
+    """``loading`` as per-region loadings (..., R, K, k, 3): one shared by the regions (K, k, 3) repeated
+    ``regions`` times, a per-region one (tinted fields') as it is."""
+    loading = xp.asarray(loading)
+    return xp.broadcast_to(loading, (regions,) + loading.shape) if loading.ndim == 3 else loading
 
 
 def column_variances(taus, degree: int, channels: str = "independent") -> np.ndarray:
@@ -291,9 +286,7 @@ def field_log_likelihood(residual, masks, sigma: float, variances, basis, xp=np,
     value, means = marginal_log_likelihood(statistics, sigma, variances, xp, solved=True, loading=loading)
     if not left:
         return value
-    loading = xp.asarray(loading, means.dtype)
-    if loading.ndim == 3:           # shared by the regions
-        loading = xp.broadcast_to(loading, (np.shape(masks)[-3],) + loading.shape)
+    loading = per_region(xp.asarray(loading, means.dtype), np.shape(masks)[-3], xp)
     mean_field = xp.einsum("...rhw,hwm,...rjmc,...rj->...hwc", xp.asarray(masks, means.dtype),
                            xp.asarray(basis, means.dtype), loading, means)
     return value, xp.asarray(residual) - mean_field
@@ -308,9 +301,7 @@ def sample_fields(masks, variances, basis, rng: np.random.Generator, loading=Non
         loading = loadings(_degree_of(np.shape(basis)[-1]))
     variances = np.asarray(variances, np.float64)
     weights = rng.standard_normal(variances.shape) * np.sqrt(variances)
-    loading = np.asarray(loading, np.float64)
-    if loading.ndim == 3:
-        loading = np.broadcast_to(loading, (variances.shape[0],) + loading.shape)
+    loading = per_region(np.asarray(loading, np.float64), variances.shape[0])
     return np.einsum("rhw,hwm,rjmc,rj->hwc", np.asarray(masks, np.float64), np.asarray(basis, np.float64),
                      loading, weights)
 
@@ -319,7 +310,7 @@ def fit_fields(residuals: np.ndarray, masks: np.ndarray, degree: int = 1,
                channels: str = "independent", tints: np.ndarray | None = None) -> tuple[FieldsNoise, dict]:
     """The fields model of residual windows (N, h, w, 3) with region masks (N, R, h, w), by maximum marginal
     likelihood (module docstring), and figures: the correlation area before and after the fields. ``tinted``
-    fields need each window's object ``tints`` (N, 3) (:func:`object_tint` of the renders)."""
+    fields need each window's object ``tints`` (N, 3) (:func:`colour_tint` of its colour)."""
     from scipy.optimize import minimize
 
     from .noise import correlation_area
@@ -331,7 +322,7 @@ def fit_fields(residuals: np.ndarray, masks: np.ndarray, degree: int = 1,
     loading = loadings(degree, channels)
     if channels == "tinted":
         if tints is None or len(tints) != len(residuals):
-            raise ValueError("tinted shading fields are fitted with each window's object tint (object_tint)")
+            raise ValueError("tinted shading fields are fitted with each window's object tint (colour_tint)")
         loading = tinted_loadings(loading, np.asarray(tints, np.float64), masks.shape[1])
     groups = masks.shape[1] * (degree + 1)
 

@@ -207,16 +207,14 @@ class MaterialMoves:
         none of them). Tinted fields load on the object's ``colour`` (3,) (:mod:`mitsuba_p3.fit.fields`)."""
         import jax.numpy as jnp
 
-        from ..fit.fields import column_statistics, field_statistics
+        from ..fit.fields import column_statistics, field_statistics, per_region
 
         height, width = vectors.shape[:2]
         masks = fields_masks(bases[..., 3, :], objects, observation["empty"], fields_regions(self.config))
         variances, basis, loading = fields_form(self.config, height, width, colours=colour, xp=jnp)
         statistics = field_statistics(jnp.moveaxis(vectors, -2, 0), masks, basis, xp=jnp)   # b: (4, R, k, 3)
         _, gram, _, _ = column_statistics(statistics, loading, xp=jnp)                       # (R, K, K)
-        loading = jnp.asarray(loading, gram.dtype)
-        if loading.ndim == 3:           # shared by the regions
-            loading = jnp.broadcast_to(loading, (gram.shape[0],) + loading.shape)
+        loading = per_region(jnp.asarray(loading, gram.dtype), gram.shape[0], jnp)
         # B'x for vector i taken in channel c alone: (4, 3, R, K)
         columns = jnp.einsum("rjmc,irmc->icrj", loading, statistics[2])
         size = gram.shape[-1]
