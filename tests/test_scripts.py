@@ -265,6 +265,34 @@ def test_compare_reproductions_reads_two_output_folders(tmp_path, capsys):
         compare.main([str(tmp_path / "a"), str(tmp_path / "c")])
 
 
+def test_compare_evaluations_pairs_two_runs_episode_by_episode(tmp_path, capsys):
+    """scripts/compare_evaluations.py: both accuracies and B - A per episode with its bootstrap interval; two
+    runs of other data sets, or whose episodes differ, are refused."""
+    compare = load_script("compare_evaluations")
+    head = "n_way,k_shot,episode,query,truth,predicted,confidence,p_true,model\n"
+    for name, wrong in (("a", {0, 1}), ("b", {0})):       # B gets episode 1's query right, A does not
+        folder = tmp_path / name
+        folder.mkdir()
+        (folder / "run.json").write_text(json.dumps({"labels_digest": "same"}))
+        rows = [f"5,1,{e},{10 + e},0,{1 if e in wrong else 0},0.9,0.1,p3\n" for e in range(4)]
+        (folder / "predictions.csv").write_text(head + "".join(rows) + "5,1,0,10,0,0,0.9,0.9,maml\n")
+        (folder / "attributes.csv").write_text("model,query,shape_true,shape_decided,material_true,material_decided,"
+                                               "size_true,size_decided,colour_true,colour_decided\n"
+                                               "p3,10,cube,cube,metal,rubber,large,large,red,red\n")
+    compare.main([str(tmp_path / "a"), str(tmp_path / "b")])
+    printed = capsys.readouterr().out
+    assert "5-way 1-shot:  50.0 ->  75.0, paired difference +25.0" in printed
+    assert "material 0.0 -> 0.0" in printed and "shape 100.0 -> 100.0" in printed
+    (tmp_path / "b" / "run.json").write_text(json.dumps({"labels_digest": "other"}))
+    with pytest.raises(SystemExit):
+        compare.main([str(tmp_path / "a"), str(tmp_path / "b")])
+    (tmp_path / "b" / "run.json").write_text(json.dumps({"labels_digest": "same"}))
+    moved = (tmp_path / "b" / "predictions.csv").read_text().replace("5,1,3,13,", "5,1,3,14,")
+    (tmp_path / "b" / "predictions.csv").write_text(moved)
+    with pytest.raises(SystemExit):
+        compare.main([str(tmp_path / "a"), str(tmp_path / "b")])
+
+
 def test_select_np3_start_takes_train_images_round_robin_over_classes():
     """experiments/select_np3_start.py's images: train shots only, first shots of every class before any
     second shot, as many as asked (or all there are)."""

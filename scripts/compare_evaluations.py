@@ -1,0 +1,82 @@
+"""Two ``mitsuba-p3 evaluate`` runs of one data set, paired episode by episode.
+
+Two evaluations of the same data set share their episodes (a pure function of the data set and the
+evaluation's seed), so a difference between them is paired: per episode, B's accuracy minus A's. This
+prints for every few-shot setting both accuracies and the paired difference with its 95% bootstrap
+interval over episodes (a cell that moved by less than that interval moved by sampling alone), and
+both runs' attribute accuracies. It refuses two runs whose episodes differ (another data set, another
+episode seed):
+
+    python scripts/compare_evaluations.py results/eval-fsclvr-s1 results/eval-fsclvr-tinted [--model p3]
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ATTRIBUTES = ("shape", "material", "size", "colour")
+
+
+def read_rows(path: Path, model: str) -> list[dict]:
+    with open(path, newline="") as handle:
+        return [r for r in csv.DictReader(handle) if r["model"] == model]
+
+
+def per_episode(rows: list[dict]) -> dict[tuple, dict[int, list]]:
+    """(n_way, k_shot) -> episode -> its predictions' (query, truth, right) in file order."""
+    out: dict[tuple, dict[int, list]] = {}
+    for r in rows:
+        setting = (int(r["n_way"]), int(r["k_shot"]))
+        out.setdefault(setting, {}).setdefault(int(r["episode"]), []).append(
+            (r["query"], r["truth"], r["predicted"] == r["truth"]))
+    return out
+
+
+def paired_difference(a: dict[int, list], b: dict[int, list], draws: int = 10000, seed: int = 0) -> tuple:
+    """Mean accuracies (points) of A and B, and B - A with its 95% bootstrap interval over episodes."""
+    episodes = sorted(a)
+    acc_a = np.array([np.mean([right for *_, right in a[e]]) for e in episodes])
+    acc_b = np.array([np.mean([right for *_, right in b[e]]) for e in episodes])
+    diff = acc_b - acc_a
+    rng = np.random.default_rng(seed)
+    boot = diff[rng.integers(len(diff), size=(draws, len(diff)))].mean(axis=1)
+    low, high = np.percentile(boot, [2.5, 97.5])
+    return 100 * acc_a.mean(), 100 * acc_b.mean(), 100 * diff.mean(), 100 * low, 100 * high
+
+
+def attribute_accuracy(path: Path, model: str) -> dict[str, float]:
+    rows = read_rows(path, model)
+    return {a: 100 * float(np.mean([r[f"{a}_true"] == r[f"{a}_decided"] for r in rows])) for a in ATTRIBUTES}
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("a", type=Path, help="the first evaluation's output folder (its predictions.csv)")
+    parser.add_argument("b", type=Path, help="the second")
+    parser.add_argument("--model", default="p3")
+    args = parser.parse_args(argv)
+    labels = [json.loads((folder / "run.json").read_text()).get("labels_digest") for folder in (args.a, args.b)]
+    if labels[0] != labels[1]:
+        sys.exit("error: the two runs evaluated different data sets (their run.json's labels_digest differ): "
+                 "they cannot be paired")
+    runs = [per_episode(read_rows(folder / "predictions.csv", args.model)) for folder in (args.a, args.b)]
+    for setting in sorted(runs[0].keys() & runs[1].keys()):
+        a, b = runs[0][setting], runs[1][setting]
+        same = a.keys() == b.keys() and all([q[:2] for q in a[e]] == [q[:2] for q in b[e]] for e in a)
+        if not same:
+            sys.exit(f"error: the two runs' {setting[0]}-way {setting[1]}-shot episodes differ (another data set or "
+                     "episode seed): they cannot be paired")
+        acc_a, acc_b, diff, low, high = paired_difference(a, b)
+        print(f"{setting[0]}-way {setting[1]}-shot: {acc_a:5.1f} -> {acc_b:5.1f}, paired difference {diff:+.1f} "
+              f"[{low:+.1f}, {high:+.1f}] over {len(a)} episodes")
+    attrs = [attribute_accuracy(folder / "attributes.csv", args.model) for folder in (args.a, args.b)]
+    print("attributes (A -> B): " + ", ".join(f"{k} {attrs[0][k]:.1f} -> {attrs[1][k]:.1f}" for k in ATTRIBUTES))
+
+
+if __name__ == "__main__":
+    main()
