@@ -15,11 +15,13 @@ from __future__ import annotations
 import argparse
 import collections
 import csv
+import json
 from pathlib import Path
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.benchmarks.episodes import sample_episodes
 from mitsuba_p3.evaluate.config import EvaluationConfig
+from mitsuba_p3.files import file_digest
 
 ATTRIBUTES = ("size", "colour", "material", "shape")          # the order of a class name's words
 
@@ -35,10 +37,13 @@ def main() -> None:
     parser.add_argument("--model", default="p3")
     args = parser.parse_args()
     dataset = load_dataset(args.dataset)
+    if json.loads((args.run / "run.json").read_text()).get("labels_digest") != file_digest(args.dataset / "labels.json"):
+        raise SystemExit(f"error: {args.run} did not evaluate {args.dataset} (its run.json's labels digest differs)")
     config = EvaluationConfig()
-    rows = [r for r in csv.DictReader(open(args.run / "predictions.csv")) if r["model"] == args.model]
-    right = {int(r["query"]): read_right(r) for r in csv.DictReader(open(args.run / "attributes.csv"))
-             if r["model"] == args.model}
+    with open(args.run / "predictions.csv", newline="") as handle:
+        rows = [r for r in csv.DictReader(handle) if r["model"] == args.model]
+    with open(args.run / "attributes.csv", newline="") as handle:
+        right = {int(r["query"]): read_right(r) for r in csv.DictReader(handle) if r["model"] == args.model}
     for n_way, k_shot in sorted({(int(r["n_way"]), int(r["k_shot"])) for r in rows}):
         episodes = sample_episodes(dataset, n_way, k_shot, config.episodes, config.episode_seed,
                                    config.queries_per_class)
@@ -49,7 +54,10 @@ def main() -> None:
             total += 1
             if r["predicted"] == r["truth"]:
                 continue
-            episode = episodes[int(r["episode"])]
+            episode = episodes[int(r["episode"])] if int(r["episode"]) < len(episodes) else None
+            if episode is None or (int(r["query"]), int(r["truth"])) not in episode.queries:
+                raise SystemExit(f"error: {args.run}'s episodes are not the default evaluation's (another --episodes "
+                                 "or episode seed); this probe redraws the defaults")
             truth, predicted = episode.classes[int(r["truth"])], episode.classes[int(r["predicted"])]
             differ["+".join(a for a, x, y in zip(ATTRIBUTES, truth.split("-"), predicted.split("-")) if x != y)] += 1
             reading = (right[int(r["query"])], all(right[s] for s in episode.support[int(r["truth"])]))
