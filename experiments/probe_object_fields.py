@@ -40,7 +40,7 @@ import json
 import numpy as np
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.fit.model import FittedModel, shot_params
-from mitsuba_p3.fit.fields import CHANNELS, colour_tint, field_log_likelihood, fit_fields, monomials
+from mitsuba_p3.fit.fields import CHANNELS, COLOURED, colour_tint, field_log_likelihood, fit_fields, monomials
 from mitsuba_p3.fit.noise import SCORING_WINDOW
 from mitsuba_p3.infer.model import PosteriorCore
 from mitsuba_p3.infer.posterior import default_likelihood
@@ -134,7 +134,7 @@ def main() -> None:
     print(json.dumps({"fitted_power": fitted_power, **figures}), flush=True)
 
     def fields(r, masks, tint):
-        loading = noise.loadings(tint) if noise.channels == "tinted" else noise.loadings()
+        loading = noise.loadings(tint) if noise.channels in COLOURED else noise.loadings()
         return noise.power * float(field_log_likelihood(r, masks, noise.sigma, variances, basis, loading=loading))
 
     names = [f"{s:g}mm" for s in SHIFTS_MM] + [f"shape{k}" for k in range(3)] + ["washed out"]

@@ -1,6 +1,7 @@
 """Training stage: scene optimisation, identifiability, VGG features, priors and bijectors, the model folder."""
 from __future__ import annotations
 
+import functools
 import json
 import subprocess
 import sys
@@ -615,6 +616,35 @@ def test_shading_fields_density_is_the_marginal_gaussian_and_its_fit_recovers_th
     tinted_drops = [tinted(residual, green) - tinted(r, green) for r in (shade, washed)]
     achromatic_washed = achromatic - field_log_likelihood(washed, masks, 0.1, variances, basis, loading=base)
     assert tinted_drops[1] > 2 + tinted_drops[0] and tinted_drops[1] > 2 + achromatic_washed
+    # sheened fields: the tinted ones and an achromatic field on the object of its own taus; the same density
+    # column by column (the other regions' zero columns ignored), the tinted one as the sheen vanishes, and a
+    # white sheen on the object forgiven as the tinted fields do not
+    sheened = FieldsNoise(0.1, (0.2, 0.1, 0.17, 0.03, 0.15, 0.05), 1, 1.0, size, "sheened")
+    assert sheened.regions == 2 and sheened.variances().shape == (2, 6)
+    loading = sheened.loadings(colour_tint(green))
+    assert loading.shape == (2, 6, 3, 3) and not loading[1, 3:].any()
+    design = np.stack([(m[..., None, None] * basis[..., :, None] * column[None, None]).sum(axis=2).reshape(-1)
+                       for m, region in zip(masks, loading) for column in region], axis=1)
+    covariance = 0.1 ** 2 * np.eye(90) + design @ np.diag(sheened.variances().reshape(-1)) @ design.T
+    exact = multivariate_normal(np.zeros(90), covariance).logpdf(residual.reshape(-1))
+    assert field_log_likelihood(residual, masks, 0.1, sheened.variances(), basis, loading=loading) == pytest.approx(
+        exact, rel=1e-10)
+    faint = FieldsNoise(0.1, sheened.taus[:4] + (1e-7, 1e-7), 1, 1.0, size, "sheened")
+    plain = FieldsNoise(0.1, sheened.taus[:4], 1, 1.0, size, "tinted")
+    assert field_log_likelihood(residual, masks, 0.1, faint.variances(), basis,
+                                loading=faint.loadings(colour_tint(green))) == pytest.approx(
+        field_log_likelihood(residual, masks, 0.1, plain.variances(), basis, loading=plain.loadings(colour_tint(green))),
+        rel=1e-9)
+    sheen = residual + 0.3 * masks[0][..., None] * np.ones(3)
+
+    def drop(noise):
+        score = functools.partial(field_log_likelihood, masks=masks, sigma=0.1, variances=noise.variances(),
+                                  basis=basis, loading=noise.loadings(colour_tint(green)))
+        return score(residual) - score(sheen)
+
+    assert drop(plain) > 2 + drop(sheened)
+    with pytest.raises(ValueError, match="and a sheen"):
+        FieldsNoise(0.1, sheened.taus[:5], 1, 1.0, size, "sheened").regions
     # residuals drawn from the model: a constant and a tilt on an object, a constant on its shadow
     size, count = (40, 48), 120            # (the correlation area needs windows well above its 12-pixel lags)
     truth = FieldsNoise(0.02, (0.1, 0.05, 0.03, 0.01), 1, 1.0, size)
@@ -643,6 +673,16 @@ def test_shading_fields_density_is_the_marginal_gaussian_and_its_fit_recovers_th
     fitted, _ = fit_fields(residuals, masks, degree=1, channels="tinted", tints=tints)
     assert fitted.sigma == pytest.approx(truth.sigma, rel=0.02)
     np.testing.assert_allclose(fitted.taus[:3], truth.taus[:3], rtol=0.15)
+    # sheened fields: the sheen's constant recovered beside the tinted object's
+    truth = FieldsNoise(0.02, (0.1, 0.05, 0.03, 0.01, 0.06, 0.01), 1, 1.0, size, "sheened")
+    residuals = np.stack([sample_fields(m, truth.variances(), basis, rng, truth.loadings(tint))
+                          for m, tint in zip(masks, tints)])
+    residuals += truth.sigma * rng.normal(size=(count,) + size + (3,))
+    fitted, _ = fit_fields(residuals, masks, degree=1, channels="sheened", tints=tints)
+    assert fitted.channels == "sheened" and len(fitted.taus) == 6
+    assert fitted.sigma == pytest.approx(truth.sigma, rel=0.02)
+    assert fitted.taus[0] == pytest.approx(truth.taus[0], rel=0.2) and fitted.taus[4] == pytest.approx(truth.taus[4],
+                                                                                                       rel=0.3)
 
 
 def test_the_fields_power_tempers_the_pixels_and_leaves_the_fields_prior_as_fitted():

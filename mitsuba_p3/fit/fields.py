@@ -45,7 +45,12 @@ the object's own pixels load on the hypothesis's colour c as c / mean(c) (:func:
 object's loading is the achromatic one): they brighten or darken the object in its own colour, as an
 error in the light it receives would, and cannot wash its colour out towards gray. An achromatic constant on a flat face is a gray offset that trades
 freely against the colour's saturation, and the colour prior's pull to gray then desaturates a cube's or
-a cylinder's colour (docs/notebook.md, "A field that cannot wash a colour out").
+a cylinder's colour (docs/notebook.md, "A field that cannot wash a colour out"). ``sheened`` fields are
+tinted ones with a second, achromatic field on the object's pixels (its own taus, after the regions'):
+a dielectric's white sheen is not the colour's, and tinted fields leave it to the specular weight. The
+other regions' loadings are padded with zero columns, which the density ignores exactly (a zero
+column adds nothing to the quadratic form, and log tau^2 + log(sigma^2 / tau^2) - log sigma^2 = 0 to
+the Occam factor), so every region keeps one (R, K, k, 3) shape.
 
 **The fit.** sigma and the taus maximise the marginal likelihood of the train split's
 residual windows at the true geometry (:func:`fit_fields`; scipy's L-BFGS over their
@@ -77,7 +82,9 @@ import numpy as np
 from ..small_linalg import cholesky, log_det, solve
 
 REGIONS = ("object", "shadow", "floor")   # a form uses the first 2 or all 3 (older models: 2)
-CHANNELS = ("independent", "achromatic", "mixed", "tinted")
+CHANNELS = ("independent", "achromatic", "mixed", "tinted", "sheened")
+# the loadings whose object columns follow the hypothesis's colour (they need each hypothesis's colour)
+COLOURED = ("tinted", "sheened")
 # the loading the noise stage fits: independent fields forgive a wrong colour (on fsclvr's and studio's train
 # images the nearest wrong colour of the same kind cost 4-9 nats against the fitted Gaussian's 186-222, and
 # beat the truth in 3-4 of 12); achromatic ones keep it (193 both) and keep most of the outline's gain
@@ -125,27 +132,28 @@ class FieldsNoise:
         return column_variances(self.taus, self.degree, self.channels)
 
     def loadings(self, tint=None, xp=np):
-        """(K, k, 3) the basis columns' loadings (:func:`loadings`); for ``tinted`` fields, per region
-        (..., R, K, k, 3) given the object's ``tint`` (..., 3) (:func:`tinted_loadings`)."""
+        """(K, k, 3) the basis columns' loadings (:func:`loadings`); for ``tinted`` and ``sheened`` fields,
+        per region (..., R, K, k, 3) given the object's ``tint`` (..., 3) (:func:`tinted_loadings`)."""
         base = loadings(self.degree, self.channels)
-        if self.channels != "tinted":
+        if self.channels not in COLOURED:
             return base
         if tint is None:
-            raise ValueError("tinted shading fields need the object's tint (colour_tint of its colour)")
-        return tinted_loadings(base, tint, self.regions, xp)
+            raise ValueError(f"{self.channels} shading fields need the object's tint (colour_tint of its colour)")
+        return tinted_loadings(base, tint, self.regions, xp, sheen=self.channels == "sheened")
 
     @property
     def regions(self) -> int:
         """How many of :data:`REGIONS` the form has fields on."""
-        return region_count(self.taus, self.degree)
+        return region_count(self.taus, self.degree, self.channels)
 
 
-def region_count(taus, degree: int) -> int:
-    """How many of :data:`REGIONS` a form with ``taus`` (region-major, degrees 0..``degree``) covers; a
-    ValueError unless that is 2 or 3 whole regions."""
-    regions, rest = divmod(len(taus), degree + 1)
+def region_count(taus, degree: int, channels: str = "independent") -> int:
+    """How many of :data:`REGIONS` a form with ``taus`` (region-major, degrees 0..``degree``; ``sheened``
+    fields' sheen taus after them) covers; a ValueError unless that is 2 or 3 whole regions."""
+    regions, rest = divmod(len(taus) - (degree + 1 if channels == "sheened" else 0), degree + 1)
     if rest or regions not in (2, 3):
-        raise ValueError(f"the shading fields need 2 or 3 regions x {degree + 1} degrees of scales; got {len(taus)}")
+        raise ValueError(f"the shading fields need 2 or 3 regions x {degree + 1} degrees of scales"
+                         f"{' and a sheen' if channels == 'sheened' else ''}; got {len(taus)}")
     return regions
 
 
@@ -163,13 +171,13 @@ def loadings(degree: int, channels: str = "independent") -> np.ndarray:
     """(K, k, 3): basis column j of a region is sum over monomials m and channels c of L[j, m, c] times
     the region's mask times monomial m in channel c. ``independent``: a column per monomial and
     channel; ``achromatic``: a column per monomial, the same in the three channels; ``mixed``: the
-    constant achromatic, the other monomials per channel; ``tinted``: the achromatic columns, which
-    :func:`tinted_loadings` colours on the object's region."""
+    constant achromatic, the other monomials per channel; ``tinted`` and ``sheened``: the achromatic
+    columns, which :func:`tinted_loadings` colours on the object's region."""
     if channels not in CHANNELS:
         raise ValueError(f"unknown fields channels {channels!r}; choose {', '.join(CHANNELS)}")
     columns = []
     for m, total in enumerate(_degrees(degree)):
-        if channels in ("achromatic", "tinted") or (channels == "mixed" and total == 0):
+        if channels in ("achromatic",) + COLOURED or (channels == "mixed" and total == 0):
             column = np.zeros((len(_degrees(degree)), 3))
             column[m] = 1.0
             columns.append(column)
@@ -190,13 +198,18 @@ def colour_tint(colour, xp=np):
     return xp.where(mean > 1e-6, colour / xp.maximum(mean, 1e-6), xp.ones_like(colour))
 
 
-def tinted_loadings(base, tint, regions: int, xp=np):
+def tinted_loadings(base, tint, regions: int, xp=np, sheen: bool = False):
     """(..., R, K, k, 3) per-region loadings of ``tinted`` fields: the object's region (the first) the
-    achromatic ``base`` (K, k, 3) times ``tint`` (..., 3) channel by channel, the other regions ``base``."""
+    achromatic ``base`` (K, k, 3) times ``tint`` (..., 3) channel by channel, the other regions ``base``.
+    With ``sheen`` (``sheened`` fields), (..., R, 2K, k, 3): the object's region also ``base`` itself, the
+    other regions ``base`` and K zero columns (module docstring)."""
     base = xp.asarray(base)
     tint = xp.asarray(tint, base.dtype)
     coloured = base * tint[..., None, None, :]                                          # (..., K, k, 3)
     plain = xp.broadcast_to(base, coloured.shape)
+    if sheen:
+        coloured = xp.concatenate([coloured, plain], axis=-3)
+        plain = xp.concatenate([plain, xp.zeros_like(plain)], axis=-3)
     return xp.stack([coloured] + [plain] * (regions - 1), axis=-4)
 
 
@@ -208,11 +221,19 @@ def per_region(loading, regions: int, xp=np):
 
 
 def column_variances(taus, degree: int, channels: str = "independent") -> np.ndarray:
-    """(regions, K) tau^2 of each basis column of :func:`loadings`: its region's tau at its monomial's degree."""
+    """(regions, K) tau^2 of each basis column of :func:`loadings`: its region's tau at its monomial's degree
+    (``sheened``: (regions, 2K), the object's sheen columns at the sheen's taus, the other regions' zero
+    columns at 1, which the density ignores)."""
     per = _degrees(degree)
-    taus = np.asarray(taus, np.float64).reshape(region_count(taus, degree), degree + 1)
+    regions = region_count(taus, degree, channels)
+    taus = np.asarray(taus, np.float64)
     column_degree = np.array([per[np.nonzero(column.any(axis=1))[0][0]] for column in loadings(degree, channels)])
-    return taus[:, column_degree] ** 2
+    variances = taus[:regions * (degree + 1)].reshape(regions, degree + 1)[:, column_degree] ** 2
+    if channels != "sheened":
+        return variances
+    sheen = np.ones_like(variances)
+    sheen[0] = taus[regions * (degree + 1):][column_degree] ** 2
+    return np.concatenate([variances, sheen], axis=1)
 
 
 def monomials(height: int, width: int, degree: int) -> np.ndarray:
@@ -310,7 +331,7 @@ def fit_fields(residuals: np.ndarray, masks: np.ndarray, degree: int = 1,
                channels: str = "independent", tints: np.ndarray | None = None) -> tuple[FieldsNoise, dict]:
     """The fields model of residual windows (N, h, w, 3) with region masks (N, R, h, w), by maximum marginal
     likelihood (module docstring), and figures: the correlation area before and after the fields. ``tinted``
-    fields need each window's object ``tints`` (N, 3) (:func:`colour_tint` of its colour)."""
+    and ``sheened`` fields need each window's object ``tints`` (N, 3) (:func:`colour_tint` of its colour)."""
     from scipy.optimize import minimize
 
     from .noise import correlation_area
@@ -320,11 +341,11 @@ def fit_fields(residuals: np.ndarray, masks: np.ndarray, degree: int = 1,
     height, width = residuals.shape[1:3]
     basis = monomials(height, width, degree)
     loading = loadings(degree, channels)
-    if channels == "tinted":
+    if channels in COLOURED:
         if tints is None or len(tints) != len(residuals):
-            raise ValueError("tinted shading fields are fitted with each window's object tint (colour_tint)")
-        loading = tinted_loadings(loading, np.asarray(tints, np.float64), masks.shape[1])
-    groups = masks.shape[1] * (degree + 1)
+            raise ValueError(f"{channels} shading fields are fitted with each window's object tint (colour_tint)")
+        loading = tinted_loadings(loading, np.asarray(tints, np.float64), masks.shape[1], sheen=channels == "sheened")
+    groups = (masks.shape[1] + (channels == "sheened")) * (degree + 1)
 
     def model(log_params) -> FieldsNoise:
         return FieldsNoise(float(np.exp(log_params[0])), tuple(np.exp(log_params[1:]).tolist()), degree, 1.0,

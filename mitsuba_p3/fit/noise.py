@@ -224,10 +224,10 @@ def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, 
     if objects is not None:
         from dataclasses import replace
 
-        from .fields import FIT_CHANNELS, FIT_REGIONS, colour_tint, fit_fields
+        from .fields import COLOURED, FIT_CHANNELS, FIT_REGIONS, colour_tint, fit_fields
 
-        if FIT_CHANNELS == "tinted" and colours is None:
-            raise ValueError("tinted shading fields are fitted with each train render's object colour")
+        if FIT_CHANNELS in COLOURED and colours is None:
+            raise ValueError(f"{FIT_CHANNELS} shading fields are fitted with each train render's object colour")
         fields, fields_figures = fit_fields(*field_windows(residuals, regions.astype(bool), np.asarray(objects, bool),
                                                            sizes[0], FIT_REGIONS),
                                             channels=FIT_CHANNELS,

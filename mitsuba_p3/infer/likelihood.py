@@ -107,7 +107,7 @@ class LikelihoodConfig:
                 raise ConfigError(f"the shading fields' channels must be one of {', '.join(CHANNELS)}; got "
                                   f"{self.fields_channels!r}")
             try:
-                region_count(self.fields, self.fields_degree)
+                region_count(self.fields, self.fields_degree, self.fields_channels)
             except ValueError as exc:
                 raise ConfigError(str(exc)) from None
             if not all(np.isfinite(t) and t > 0 for t in self.fields):
@@ -210,7 +210,7 @@ def fields_regions(config: LikelihoodConfig) -> int:
     """How many regions the config's shading fields cover (:func:`~mitsuba_p3.fit.fields.region_count`)."""
     from ..fit.fields import region_count
 
-    return region_count(config.fields, config.fields_degree)
+    return region_count(config.fields, config.fields_degree, config.fields_channels)
 
 
 def fields_form(config: LikelihoodConfig, height: int, width: int, colours=None, xp=np):
@@ -218,13 +218,13 @@ def fields_form(config: LikelihoodConfig, height: int, width: int, colours=None,
     (K, k, 3)) of the config's shading fields (:mod:`mitsuba_p3.fit.fields`). Tinted fields' loadings are
     per region and object colour, (..., R, K, k, 3), and need the hypotheses' ``colours`` (..., 3)."""
     from ..errors import ConfigError
-    from ..fit.fields import FieldsNoise, colour_tint, monomials
+    from ..fit.fields import COLOURED, FieldsNoise, colour_tint, monomials
 
     noise = FieldsNoise(config.sigma, config.fields, config.fields_degree, config.power, (height, width),
                         config.fields_channels)
-    if noise.channels == "tinted":
+    if noise.channels in COLOURED:
         if colours is None:
-            raise ConfigError("tinted shading fields need each hypothesis's object colour")
+            raise ConfigError(f"{noise.channels} shading fields need each hypothesis's object colour")
         loading = noise.loadings(colour_tint(colours, xp), xp)
     else:
         loading = noise.loadings()

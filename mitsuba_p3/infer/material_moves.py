@@ -25,6 +25,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .. import small_linalg
+from ..fit.fields import COLOURED
 from ..space import SLICES
 from .likelihood import fields_form, fields_masks, fields_regions, whiten
 
@@ -168,7 +169,7 @@ class MaterialMoves:
     @property
     def _tinted(self) -> bool:
         """Whether the likelihood's shading fields load on the object's colour (their Gram then depends on it)."""
-        return self.config.fields is not None and self.config.fields_channels == "tinted"
+        return self.config.fields is not None and self.config.fields_channels in COLOURED
 
     def _gram(self, bases, objects, observation, tempering, colour=None):
         """The tempered precision-weighted inner products of the bases A, D, S and the residual

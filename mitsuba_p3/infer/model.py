@@ -16,6 +16,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..fit.fields import COLOURED
 from ..fit.model import FittedModel
 from ..fit.priors import Prior
 from ..render import RENDERERS
@@ -235,7 +236,7 @@ class PosteriorCore(MaterialMoves):
         """The score of one render (h, w, 3) of position z whose object covers ``objects`` (h, w; None
         unless the likelihood needs them) (:func:`~mitsuba_p3.infer.likelihood.score`; tinted shading
         fields read z's colour)."""
-        colours = self.params(z)["colour"][None] if self.config.fields_channels == "tinted" else None
+        colours = self.params(z)["colour"][None] if self.config.fields_channels in COLOURED else None
         return score(observation, image[None], self.config, self.channels,
                      None if objects is None else objects[None], colours)[0]
 
