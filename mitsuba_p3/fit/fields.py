@@ -92,7 +92,8 @@ COLOURED = ("tinted", "sheened")
 # out towards gray; tinted ones explain the train residuals better (marginal log likelihood per pixel on 24
 # train windows, dark 7.79 against 7.58, room 6.39 against 6.30; the correlation they leave 46 against 68 and
 # 24 against 35 pixels) and a wash-out beats the truth in 1 of dark's 24 probed images against 4
-# (docs/notebook.md, "A field that cannot wash a colour out")
+# (docs/notebook.md, "A field that cannot wash a colour out"); sheened ones fit better still (dark 7.90, room 6.43)
+# and let a flat face's colour wash out again (4 of 24 dark windows; results/fields-tinted/README.md)
 FIT_CHANNELS = "tinted"
 # how many of REGIONS the noise stage fits fields on (2: object and shadow; 3: and the rest of the floor)
 FIT_REGIONS = 3
