@@ -293,6 +293,21 @@ def test_compare_evaluations_pairs_two_runs_episode_by_episode(tmp_path, capsys)
         compare.main([str(tmp_path / "a"), str(tmp_path / "b")])
 
 
+def test_probe_gap_causes_tells_a_run_that_settled_short_from_the_estimates_noise(tmp_path):
+    """experiments/probe_gap_causes.py: the leader's runs' best-log-likelihood spread and its margin over the
+    runner-up hypothesis, read from a cached posterior."""
+    probe = load_script("probe_gap_causes")
+    path = tmp_path / "00001.npz"
+    loglik = np.array([[10.0, 50.0], [12.0, 49.0], [5.0, 20.0], [1.0, 30.0]])      # runs (rows) x particles
+    np.savez(path, island_gap=np.float64(12.0), particles_index=np.array([0, 0, 1, 1]),
+             particles_log_evidence=np.array([40.0, 28.0, 10.0, 25.0]), particles_loglikelihood=loglik)
+    causes = probe.gap_causes(path)
+    assert causes == {"gap": 12.0, "best_spread": 1.0, "margin": 15.0}
+    np.savez(path, island_gap=np.float64(0.0), particles_index=np.array([2]),
+             particles_log_evidence=np.array([3.0]), particles_loglikelihood=loglik[:1])
+    assert probe.gap_causes(path)["margin"] == float("inf")
+
+
 def test_select_np3_start_takes_train_images_round_robin_over_classes():
     """experiments/select_np3_start.py's images: train shots only, first shots of every class before any
     second shot, as many as asked (or all there are)."""
