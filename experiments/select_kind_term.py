@@ -28,7 +28,7 @@ import numpy as np
 from scipy.special import log_softmax
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
-from mitsuba_p3.concepts import DistanceConfig, ProtoProgram, _kl_matrix, fit_spread
+from mitsuba_p3.concepts import ConceptSpread, DistanceConfig, ProtoProgram, _kl_matrix, fit_spread
 from mitsuba_p3.evaluate.jobs import (MATERIAL_RULE_FEATURES, PosteriorMisfits, cached_train_posteriors,
                                       rules_learnt_from)
 from mitsuba_p3.evaluate.run import train_shapes
@@ -48,10 +48,9 @@ def held_out_metal(dataset, posteriors, rules, misfits) -> dict[int, float]:
 
 
 def kind_probabilities(p_metal: float, error: float) -> np.ndarray:
-    """(rubber, metal) mixed with the uniform so that a certain kind keeps 1 - error."""
-    p = np.array([1.0 - p_metal, p_metal])
-    weight = min(1.0, 2.0 * error)
-    return (1.0 - weight) * p + weight / 2.0
+    """(rubber, metal) mixed with the uniform so that a certain kind keeps 1 - error (as the concept spread
+    mixes a shape's class distribution)."""
+    return ConceptSpread({}, error).class_mixture(np.array([1.0 - p_metal, p_metal]))
 
 
 def episodes(fold: dict, metal: dict, error: float, n_way: int, k_shot: int, count: int, seed: int,
