@@ -35,6 +35,18 @@ distribution is mixed with a uniform one at the sampler's error rate on train
 shapes, so a program is the predictive density of another instance of its
 concept. Without a spread the programs are the paper's.
 
+**The concept's tails.** Two images of one class are mostly a spread apart and
+now and then many: a metal's colour posterior moves with what it mirrors, a
+misread image lands far off. Under Gaussian kernels such a gap costs its squared
+distance, tens of nats that drown every other term. The spread's kernels are
+therefore Student-t ones (a within-class scale that is itself uncertain: the
+predictive density of a scale mixture of Gaussians), whose degrees of freedom
+(one, shared by the properties) and scales are fitted by maximum likelihood on
+the differences between two train images' posterior means of one class
+(:func:`fit_tail`), so a far gap costs about its log. Fitted, not chosen by
+accuracy; held-out train classes' episodes decided that fitted tails replace
+Gaussian kernels (``experiments/select_concept_tails.py``, docs/notebook.md).
+
 **The KL's direction.** The paper's KL(C_k || C_I) draws from the class
 program and asks the query's posterior to explain every draw. A K-shot class
 program is a mixture of K posteriors, so its draws near the other shots fall
@@ -58,7 +70,7 @@ import functools
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.special import log_softmax
+from scipy.special import gammaln, log_softmax
 
 from .errors import MitsubaP3Error, check_counts
 from .shapes import SHAPES
@@ -80,6 +92,8 @@ class DistanceConfig:
     # the KL's direction: "image||class" (KL(C_I || C_k); chosen on held-out train classes' 1- and 5-shot
     # episodes, docs/notebook.md) or "class||image" (the paper's, KL(C_k || C_I))
     direction: str = "image||class"
+    # the concept's kernels: Student-t of tails fitted on train classes (True) or Gaussian (False)
+    tails: bool = True
 
     def __post_init__(self):
         unknown = set(self.properties) - set(PROPERTIES)
@@ -116,17 +130,37 @@ def _log_kernel_sum():
     return jax.jit(lambda z, p: jax.nn.logsumexp(-0.5 * jnp.sum((z[:, None, :] - p[None]) ** 2, axis=-1), axis=1))
 
 
+@functools.cache
+def _log_student_kernel_sum():
+    """Jitted log sum_j (1 + |z_i - p_j|^2 / nu)^(-(nu + d) / 2), the Student-t kernels' sum."""
+    import jax
+    import jax.numpy as jnp
+
+    def kernel_sum(z, p, nu):
+        squared = jnp.sum((z[:, None, :] - p[None]) ** 2, axis=-1)
+        return jax.nn.logsumexp(-0.5 * (nu + z.shape[1]) * jnp.log1p(squared / nu), axis=1)
+
+    return jax.jit(kernel_sum)
+
+
+def student_log_norm(nu: float, d: int) -> float:
+    """log of the multivariate Student-t density's constant for a unit scale matrix."""
+    return float(gammaln(0.5 * (nu + d)) - gammaln(0.5 * nu) - 0.5 * d * np.log(nu * np.pi))
+
+
 class GaussianKde:
     """A Gaussian KDE with Scott's bandwidth, the density of ``scipy.stats.gaussian_kde``;
     with ``spread`` (a covariance), each kernel is widened by it (the density convolved with
-    N(0, spread)).
+    N(0, spread)). With finite ``dof``, each kernel is instead a Student-t of that many degrees
+    of freedom and the same scale matrix (Scott's covariance plus the spread): a concept whose
+    within-class scale is itself uncertain, which charges a far draw about its log distance.
 
     Its own class for speed: the density is one fused, jitted kernel sum in
     whitened coordinates (measured 3-10x faster than the same sum in numpy at the
     evaluation's sizes), so scoring an episode takes a fraction of a second.
     """
 
-    def __init__(self, points: np.ndarray, spread: np.ndarray | None = None):
+    def __init__(self, points: np.ndarray, spread: np.ndarray | None = None, dof: float = np.inf):
         points = np.asarray(points, np.float64)
         n, d = points.shape
         self.points = points
@@ -136,21 +170,32 @@ class GaussianKde:
             covariance = covariance + np.atleast_2d(spread)
         # a property that never varied (a fixed prior) still gets a proper density
         covariance += np.eye(d) * max(1e-12, 1e-9 * np.trace(covariance) / d)
+        if not dof > 0:
+            raise MitsubaP3Error(f"a Student-t kernel needs positive degrees of freedom; got {dof}")
+        self.dof = float(dof)
+        # the kernels' scale matrix (their covariance when Gaussian)
         self.cholesky = np.linalg.cholesky(covariance)
         self._whiten = np.linalg.inv(self.cholesky)
         self._white_points = (points @ self._whiten.T).astype(np.float32)
-        self._log_norm = (np.log(n) + 0.5 * d * np.log(2 * np.pi)
-                          + np.sum(np.log(np.diag(self.cholesky))))
+        self._log_norm = np.log(n) + np.sum(np.log(np.diag(self.cholesky))) - (
+            -0.5 * d * np.log(2 * np.pi) if np.isinf(self.dof) else student_log_norm(self.dof, d))
 
     def log_prob(self, x: np.ndarray) -> np.ndarray:
         """log density at the rows of ``x`` (m, d)."""
-        z = np.asarray(x, np.float64).reshape(-1, self.points.shape[1]) @ self._whiten.T
-        return np.asarray(_log_kernel_sum()(z.astype(np.float32), self._white_points), np.float64) - self._log_norm
+        z = (np.asarray(x, np.float64).reshape(-1, self.points.shape[1]) @ self._whiten.T).astype(np.float32)
+        if np.isinf(self.dof):
+            total = _log_kernel_sum()(z, self._white_points)
+        else:
+            total = _log_student_kernel_sum()(z, self._white_points, np.float32(self.dof))
+        return np.asarray(total, np.float64) - self._log_norm
 
     def sample(self, rng: np.random.Generator, n: int) -> np.ndarray:
-        """n draws (n, d): a random kernel centre plus its Gaussian noise."""
+        """n draws (n, d): a random kernel centre plus its Gaussian (or Student-t) noise."""
         centres = self.points[rng.integers(len(self.points), size=n)]
-        return centres + rng.standard_normal((n, self.points.shape[1])) @ self.cholesky.T
+        noise = rng.standard_normal((n, self.points.shape[1])) @ self.cholesky.T
+        if not np.isinf(self.dof):
+            noise = noise * np.sqrt(self.dof / rng.chisquare(self.dof, size=(n, 1)))
+        return centres + noise
 
 
 @dataclass(frozen=True)
@@ -158,23 +203,32 @@ class ConceptSpread:
     """How far apart two instances of one concept are, as the sampler sees them (fitted on train classes).
 
     ``covariance``: per continuous property, the pooled within-class covariance of the
-    posterior means; ``class_error``: the mean posterior probability of a wrong shape on the
-    train images. ``images`` and ``classes`` say what it was fitted on.
+    posterior means (for Student-t kernels, their fitted scale matrix); ``class_error``: the
+    mean posterior probability of a wrong shape on the train images; ``tails``: per continuous
+    property, the kernels' degrees of freedom (absent or infinite: Gaussian kernels).
+    ``images`` and ``classes`` say what it was fitted on.
     """
 
     covariance: dict
     class_error: float
     images: int = 0
     classes: int = 0
+    tails: dict = field(default_factory=dict)
+
+    def dof(self, name: str) -> float:
+        """The degrees of freedom of a property's kernels (infinite: Gaussian)."""
+        return float(self.tails.get(name, np.inf))
 
     def to_json(self) -> dict:
         return {"covariance": {k: np.asarray(v).tolist() for k, v in self.covariance.items()},
-                "class_error": self.class_error, "images": self.images, "classes": self.classes}
+                "class_error": self.class_error, "images": self.images, "classes": self.classes,
+                "tails": {k: (None if np.isinf(v) else float(v)) for k, v in self.tails.items()}}
 
     @classmethod
     def from_json(cls, record: dict) -> "ConceptSpread":
         return cls({k: np.atleast_2d(np.asarray(v, np.float64)) for k, v in record["covariance"].items()},
-                   float(record["class_error"]), int(record.get("images", 0)), int(record.get("classes", 0)))
+                   float(record["class_error"]), int(record.get("images", 0)), int(record.get("classes", 0)),
+                   {k: (np.inf if v is None else float(v)) for k, v in record.get("tails", {}).items()})
 
     def class_mixture(self, probabilities: np.ndarray) -> np.ndarray:
         """Mix a class distribution with the uniform one so that a certain class keeps
@@ -184,25 +238,74 @@ class ConceptSpread:
         return (1.0 - weight) * probabilities + weight / k
 
 
-def fit_spread(programs: dict[str, list["ProtoProgram"]], shapes: dict[str, int | None]) -> ConceptSpread:
+# the degrees of freedom fit_tail chooses among (inf: Gaussian)
+TAIL_GRID = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 10.0, 20.0, 50.0, np.inf)
+
+
+def fit_student(x: np.ndarray, dof: float, iterations: int = 200) -> tuple[np.ndarray, float]:
+    """The maximum-likelihood scale matrix of a zero-mean multivariate Student-t of ``dof`` degrees of
+    freedom (the Gaussian's covariance for infinite dof) for the rows of ``x`` (n, d), by the
+    classical EM (each row weighted by (nu + d) / (nu + its squared Mahalanobis distance)), and the
+    log likelihood it reaches."""
+    n, d = x.shape
+    jitter = np.eye(d) * max(1e-12, 1e-9 * np.trace(x.T @ x) / max(n, 1) / d)
+    scale = x.T @ x / n + jitter
+    for _ in range(1 if np.isinf(dof) else iterations):
+        squared = np.sum(np.linalg.solve(np.linalg.cholesky(scale), x.T) ** 2, axis=0)
+        weights = np.ones(n) if np.isinf(dof) else (dof + d) / (dof + squared)
+        new = (x * weights[:, None]).T @ x / n + jitter
+        if np.allclose(new, scale, rtol=1e-8, atol=0):
+            break
+        scale = new
+    cholesky = np.linalg.cholesky(scale)
+    squared = np.sum(np.linalg.solve(cholesky, x.T) ** 2, axis=0)
+    log_det = np.sum(np.log(np.diag(cholesky)))
+    if np.isinf(dof):
+        return scale, float(np.sum(-0.5 * squared) - n * (0.5 * d * np.log(2 * np.pi) + log_det))
+    return scale, float(np.sum(-0.5 * (dof + d) * np.log1p(squared / dof)) + n * (student_log_norm(dof, d) - log_det))
+
+
+def fit_tail(differences: list[np.ndarray]) -> tuple[float, list[np.ndarray]]:
+    """One degrees of freedom among :data:`TAIL_GRID`, shared by every property, and each property's
+    scale matrix of one image's deviation, under which the within-class differences of two images'
+    posterior means (one (n, d_v) array per property) are most likely together (a difference's scale
+    taken as twice a deviation's). Shared because one number is estimated far more stably than one
+    per property from a few dozen pairs, and a property left Gaussian beside heavy-tailed ones would
+    outweigh them all."""
+    fits = {dof: [fit_student(x, dof) for x in differences] for dof in TAIL_GRID}
+    dof = max(fits, key=lambda k: sum(log_likelihood for _, log_likelihood in fits[k]))
+    return dof, [scale / 2.0 for scale, _ in fits[dof]]
+
+
+def fit_spread(programs: dict[str, list["ProtoProgram"]], shapes: dict[str, int | None],
+               tails: bool = False) -> ConceptSpread:
     """The :class:`ConceptSpread` of train classes: ``programs`` maps a class to its images' programs
     (at least two for some class), ``shapes`` a class to its true shape's index (None for a shape
-    outside :data:`~mitsuba_p3.shapes.SHAPES`, which does not count towards ``class_error``)."""
+    outside :data:`~mitsuba_p3.shapes.SHAPES`, which does not count towards ``class_error``).
+    With ``tails``, the kernels become Student-t ones whose degrees of freedom (one for every property)
+    and scales are those under which the differences between two images of one class are most likely
+    (:func:`fit_tail`; the scales then stand in ``covariance``)."""
     groups = [group for group in programs.values() if group]
     images = sum(len(group) for group in groups)
     if images - len(groups) < 1:
         raise MitsubaP3Error("fitting a concept spread needs two or more images of at least one class")
-    covariance = {}
+    covariance, differences = {}, {}
     for name in CONTINUOUS:
-        scatter = 0.0
+        scatter, differences[name] = 0.0, []
         for group in groups:
             means = np.stack([p.samples[name].mean(axis=0) for p in group])
             centred = means - means.mean(axis=0)
             scatter = scatter + centred.T @ centred
+            differences[name] += [means[i] - means[j] for i in range(len(means)) for j in range(i + 1, len(means))]
         covariance[name] = np.atleast_2d(scatter / (images - len(groups)))
+    dofs = {}
+    if tails:
+        dof, scales = fit_tail([np.stack(differences[name]) for name in CONTINUOUS])
+        covariance = dict(zip(CONTINUOUS, scales))
+        dofs = {name: dof for name in CONTINUOUS}
     wrong = [1.0 - p.class_probabilities()[shapes[name]]
              for name, group in programs.items() if shapes.get(name) is not None for p in group]
-    return ConceptSpread(covariance, float(np.mean(wrong)) if wrong else 0.0, images, len(groups))
+    return ConceptSpread(covariance, float(np.mean(wrong)) if wrong else 0.0, images, len(groups), dofs)
 
 
 @dataclass
@@ -242,7 +345,8 @@ class ProtoProgram:
             points = self.samples[name]
             if len(points) > self.max_points:
                 points = points[np.linspace(0, len(points) - 1, self.max_points).astype(int)]
-            self._kdes[name] = GaussianKde(points, self.spread.covariance[name] if self.spread else None)
+            self._kdes[name] = (GaussianKde(points, self.spread.covariance[name], self.spread.dof(name))
+                                if self.spread else GaussianKde(points))
         return self._kdes[name]
 
     def class_probabilities(self, smoothing: float = DistanceConfig.class_smoothing) -> np.ndarray:

@@ -267,6 +267,8 @@ def parse_run_name(name: str) -> tuple[str, float | str | None] | None:
 def _describe(part: str) -> str:
     if part == "spread0":
         return "no concept spread"
+    if part in ("gaussian-concepts", "concept-tails"):
+        return "Gaussian concept kernels" if part == "gaussian-concepts" else "concept kernels with fitted tails"
     if part.startswith("kl-"):
         first, second = part.removeprefix("kl-").split("-", 1)
         return f"KL({first} || {second})"
@@ -277,7 +279,8 @@ def label(likelihood: str, sigma: float | str | None, distance: str | None = Non
     """A table row's name: ``P3``, ``P3 (fitted noise)``, ``P3 (sigma 0.3)``, ``NP3 (colour+class)``, ..."""
     noise = [] if sigma is None else [f"{sigma} noise"] if sigma in FITTED_NOISES else [f"sigma {sigma:g}"]
     # a tables folder's name: distance terms and/or the concept spread (spread0: the paper's programs)
-    parts = distance.replace("-spread", "\0spread").replace("-kl-", "\0kl-").split("\0") if distance else []
+    parts = (distance.replace("-spread", "\0spread").replace("-kl-", "\0kl-").replace("-gaussian-concepts", "\0gaussian-concepts")
+             .replace("-concept-tails", "\0concept-tails").split("\0") if distance else [])
     notes = noise + [_describe(part) for part in parts]
     return likelihood.upper() + (f" ({', '.join(notes)})" if notes else "")
 
@@ -364,13 +367,14 @@ def collect(out: Path) -> dict:
     """Every evaluated run under ``out/runs``: {(benchmark, sigma, distance): {likelihood: result}}, where
     distance is None for the default distance and e.g. ``colour+class`` for tables in ``runs/V/distance-colour+class``
     (``spread0`` for the paper's distance over programs without a concept spread, ``kl-class-image`` for the
-    paper's KL direction)."""
+    paper's KL direction, ``gaussian-concepts`` for the concept's Gaussian kernels)."""
     found = {}
     for run in sorted((out / "runs").glob("*/")):
         key = run_identity(run)
         if key is None:
             continue
-        tables = [run / "results.json"] + [path for folder in ("distance-*", "spread*", "kl-*")
+        tables = [run / "results.json"] + [path for folder in ("distance-*", "spread*", "kl-*", "gaussian-concepts",
+                                                               "concept-tails")
                                            for path in sorted(run.glob(f"{folder}/results.json"))]
         for path in tables:
             if path.is_file():

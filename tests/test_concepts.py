@@ -1,6 +1,8 @@
 """Protoprograms: KDEs, merge, the KL distance and its Monte Carlo estimator, classification; ADI; ECE."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -203,3 +205,67 @@ def test_a_spread_makes_instances_of_one_concept_close_and_keeps_others_apart(di
     np.testing.assert_allclose(probabilities, [0.9, 0.05, 0.05])
     with pytest.raises(Exception, match="spread_shots"):
         DistanceConfig(spread_shots=1)
+
+
+def test_student_kernels_match_scipy_and_their_draws():
+    """With finite degrees of freedom, the KDE is a mixture of Student-t kernels of the Gaussian's scale
+    matrix (scipy's multivariate_t), and its draws have that mixture's spread."""
+    from scipy.stats import multivariate_t
+    from mitsuba_p3.concepts import GaussianKde
+
+    rng = np.random.default_rng(2)
+    points, spread = rng.normal(size=(6, 3)), np.diag([0.5, 1.0, 2.0])
+    kde = GaussianKde(points, spread, dof=4.0)
+    scale = kde.cholesky @ kde.cholesky.T
+    x = rng.normal(size=(20, 3)) * 3
+    expected = np.log(np.mean([multivariate_t(loc=p, shape=scale, df=4.0).pdf(x) for p in points], axis=0))
+    np.testing.assert_allclose(kde.log_prob(x), expected, rtol=1e-5)
+    draws = kde.sample(rng, 200000)
+    # covariance of the mixture: the centres' scatter plus the t's covariance, scale * nu / (nu - 2)
+    centred = points - points.mean(axis=0)
+    np.testing.assert_allclose(np.cov(draws.T), centred.T @ centred / len(points) + 2.0 * scale, rtol=0.1, atol=0.1)
+    with pytest.raises(Exception, match="degrees of freedom"):
+        GaussianKde(points, spread, dof=0.0)
+
+
+@pytest.mark.parametrize("dof", [1.5, 4.0, np.inf])
+def test_fit_tail_recovers_the_degrees_of_freedom_and_scale(dof):
+    """Differences drawn from a Student-t (or a Gaussian) of a known scale: the fit picks their degrees of
+    freedom from the grid and a deviation's scale, half the differences'."""
+    from scipy.stats import multivariate_t
+    from mitsuba_p3.concepts import fit_tail
+
+    scale = np.array([[1.0, 0.3], [0.3, 2.0]])
+    rng = np.random.default_rng(3)
+    x = (rng.multivariate_normal(np.zeros(2), scale, size=3000) if np.isinf(dof)
+         else multivariate_t(np.zeros(2), scale, df=dof).rvs(3000, random_state=rng))
+    fitted, (deviation,) = fit_tail([x])
+    assert fitted == dof
+    np.testing.assert_allclose(2.0 * deviation, scale, atol=0.12)
+    # one degrees of freedom for two properties: heavy-tailed ones decide it over a few Gaussian ones
+    shared, scales = fit_tail([x, rng.normal(size=(40, 1))])
+    assert len(scales) == 2 and (shared == dof or np.isinf(dof))
+
+
+def test_fit_spread_with_tails_finds_a_heavy_tailed_concept_and_keeps_it_in_json():
+    """Instances that mostly lie near their concept's centre but now and then far from it (a metal's colour
+    moving with what it mirrors) get heavy-tailed kernels; Gaussian scatter keeps Gaussian ones. The
+    tails travel through JSON, infinite ones as null."""
+    from mitsuba_p3.concepts import ConceptSpread, fit_spread
+
+    rng = np.random.default_rng(4)
+    shapes, heavy, light = {}, {}, {}
+    for c in range(60):
+        centre = rng.uniform(0, 1, 3)
+        shapes[f"c{c}"] = 0
+        offsets = 0.02 * rng.standard_t(1.0, size=(3, 3))
+        heavy[f"c{c}"] = [_sharp_instance(rng, centre + o, 0) for o in offsets]
+        light[f"c{c}"] = [_sharp_instance(rng, centre + 0.02 * rng.normal(size=3), 0) for _ in range(3)]
+    assert all(fit_spread(heavy, shapes, tails=True).dof(name) <= 2.0 for name in ("colour", "scale"))
+    gaussian = fit_spread(light, shapes, tails=True)
+    assert all(gaussian.dof(name) >= 10.0 for name in ("colour", "scale")), gaussian.tails
+    spread = fit_spread(heavy, shapes, tails=True)
+    again = ConceptSpread.from_json(json.loads(json.dumps(spread.to_json())))
+    assert again.tails == spread.tails and fit_spread(light, shapes).tails == {}
+    back = ConceptSpread.from_json(json.loads(json.dumps(ConceptSpread({}, 0.0, tails={"colour": np.inf}).to_json())))
+    assert np.isinf(back.dof("colour")) and np.isinf(back.dof("scale"))

@@ -14,7 +14,7 @@ import pytest
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.errors import EvaluationError
-from mitsuba_p3.concepts import DistanceConfig
+from mitsuba_p3.concepts import CONTINUOUS, DistanceConfig
 from mitsuba_p3.evaluate import (EvaluationConfig, check_run, compute_posteriors, evaluate, posterior_path)
 from mitsuba_p3.evaluate.run import spread_shots
 from mitsuba_p3.fit.model import fit_model
@@ -68,6 +68,7 @@ def test_evaluate_resumes_after_kill_and_writes_tables(bench, tmp_path):
     assert len(list(folder.glob("*.npz"))) == images        # test images, and train images for the spread
     spread = json.loads((run / f"spread-p3-{DistanceConfig.spread_shots}.json").read_text())
     assert spread["classes"] == 5 and spread["images"] == 15 and 0 <= spread["class_error"] <= 1
+    assert set(spread["tails"]) == set(CONTINUOUS)                  # the concept's kernels' fitted tails
     assert not list(folder.glob("*.tmp*"))
     results = json.loads((run / "results.json").read_text())["results"]["p3"]
     assert json.loads((run / "material-rule-p3.json").read_text())["format"] == "mitsuba-p3-material-rule"
@@ -93,6 +94,11 @@ def test_evaluate_resumes_after_kill_and_writes_tables(bench, tmp_path):
     assert paper.returncode == 0, paper.stderr
     assert (run / "results.json").read_bytes() == paper_results
     assert json.loads((run / "spread0" / "results.json").read_text())["results"]["p3"]["accuracy"]
+    gaussian = subprocess.run(command + ["--gaussian-concepts"], capture_output=True, text=True, timeout=600)
+    assert gaussian.returncode == 0, gaussian.stderr
+    assert (run / "results.json").read_bytes() == paper_results
+    assert json.loads((run / "gaussian-concepts" / "results.json").read_text())["concept_tails"] is False
+    assert json.loads((run / f"spread-p3-{DistanceConfig.spread_shots}-gaussian.json").read_text())["tails"] == {}
     bad = subprocess.run(command + ["--distance", "colour+hue"], capture_output=True, text=True, timeout=300)
     assert bad.returncode != 0 and "hue" in bad.stderr
 
@@ -395,6 +401,13 @@ def test_refusals_come_before_any_work(bench, tmp_path):
     config = EvaluationConfig(likelihoods=("p3",), sampler=TINY)
     with pytest.raises(EvaluationError, match="--spread-from"):
         evaluate(data, bench / "model", tmp_path / "run", config)
+    # a spread written before concept kernels had tails would silently score with Gaussian ones
+    old = tmp_path / "old-run"
+    old.mkdir()
+    (old / f"spread-p3-{DistanceConfig.spread_shots}.json").write_text(json.dumps(
+        {"covariance": {}, "class_error": 0.1, "images": 15, "classes": 5}))
+    with pytest.raises(EvaluationError, match="before concept spreads had fitted tails"):
+        evaluate(data, bench / "model", tmp_path / "run", config, spread_from=old)
     with pytest.raises(EvaluationError, match="no Dask scheduler answers"):
         evaluate(bench / "data", bench / "model", tmp_path / "run",
                  EvaluationConfig(likelihoods=("p3",), sampler=TINY, dask="tcp://127.0.0.1:1"))

@@ -27,6 +27,9 @@ NOISE_HELP = ("Noise model: fitted (the Gaussian fitted to the model's train res
               "the outline keeps its evidence) or paper (sigma 1, no shadows: the paper's).")
 SPREAD_HELP = ("Train images per train class whose posteriors fit the protoprograms' concept spread "
                "(sampled like the test images; 0: the paper's programs, tables in RUN/spread0).")
+TAILS_HELP = ("The concept's kernels: Student-t ones whose tails and scale are fitted on train classes "
+              "(--concept-tails; chosen on held-out train classes' episodes, docs/notebook.md) or Gaussian "
+              "(--gaussian-concepts; tables in RUN/gaussian-concepts).")
 KL_HELP = ("The distance's KL direction: image||class (KL(C_I || C_k), chosen on held-out train classes' 1- and "
            "5-shot episodes, docs/notebook.md) or class||image (the paper's; tables in RUN/kl-class-image).")
 SAMPLER_HELP_TEXT = ("auto (smc under a fitted noise model, mh under the paper's), smc (tempered SMC over the "
@@ -259,6 +262,7 @@ def evaluate(
                                              "writes its tables to RUN/distance-TERMS."),
     spread_shots: int = typer.Option(DistanceConfig.spread_shots, help=SPREAD_HELP),
     kl: str = typer.Option(DistanceConfig.direction, "--kl", help=KL_HELP),
+    concept_tails: bool = typer.Option(DistanceConfig.tails, "--concept-tails/--gaussian-concepts", help=TAILS_HELP),
     spread_from: Optional[Path] = typer.Option(None, help="For a data set without train classes (ood): the "
                                                           "evaluation run of the model's own benchmark, same "
                                                           "settings, whose concept spread to use."),
@@ -274,7 +278,8 @@ def evaluate(
     config = EvaluationConfig(likelihoods=chosen, sigma=sigma, noise=noise, renderer=renderer, episodes=episodes,
                               jobs=jobs,
                               dask=dask, distance=DistanceConfig(properties=parse_properties(distance),
-                                                                 spread_shots=spread_shots, direction=kl),
+                                                                 spread_shots=spread_shots, direction=kl,
+                                                                 tails=concept_tails),
                               sampler=apply_settings(choose_sampler(sampler, SamplerConfig(
                                   chains=chains, steps=steps, burn_in=burn_in, tune_rounds=tune_rounds,
                                   tune_steps=tune_steps, seed=seed), particles, noise, sigma, bridge, renderer),
@@ -321,6 +326,7 @@ def reproduce(
                                              "runs/V/distance-TERMS; the posteriors are shared)."),
     spread_shots: int = typer.Option(DistanceConfig.spread_shots, help=SPREAD_HELP),
     kl: str = typer.Option(DistanceConfig.direction, "--kl", help=KL_HELP),
+    concept_tails: bool = typer.Option(DistanceConfig.tails, "--concept-tails/--gaussian-concepts", help=TAILS_HELP),
     resolution: Optional[str] = typer.Option(None, help="HxW of benchmarks generated here (default: 480x640); "
                                                         "folders already made must match it."),
     observation: str = typer.Option("phong", help="Observation model of the fits made here (as fit --observation; "
@@ -356,7 +362,8 @@ def reproduce(
     evaluation = EvaluationConfig(likelihoods=tuple(k.strip() for k in likelihoods.split(",") if k.strip()),
                                   sigma=sigma, noise=noise, sampler=sampler, episodes=episodes, jobs=jobs,
                                   distance=DistanceConfig(properties=parse_properties(distance),
-                                                          spread_shots=spread_shots, direction=kl))
+                                                          spread_shots=spread_shots, direction=kl,
+                                                          tails=concept_tails))
     height, width = parse_resolution(resolution)
     config = ReproduceConfig(observation=observation, light_falloff=light_falloff, light_colour=light_colour,
                              benchmarks=tuple(b.strip() for b in benchmarks.split(",") if b.strip()),

@@ -35,18 +35,22 @@ def spread_shots(dataset: Dataset, per_class: int) -> list[int]:
     return [shot.index for name in dataset.classes("train") for shot in dataset.shots_of(name)[:per_class]]
 
 
-def spread_file(run_dir: Path, likelihood: str, per_class: int) -> Path:
-    return Path(run_dir) / f"spread-{likelihood}-{per_class}.json"
+def spread_file(run_dir: Path, likelihood: str, per_class: int, tails: bool = True) -> Path:
+    """RUN/spread-LIKELIHOOD-N.json (with fitted tails) or RUN/spread-LIKELIHOOD-N-gaussian.json."""
+    return Path(run_dir) / f"spread-{likelihood}-{per_class}{'' if tails else '-gaussian'}.json"
 
 
 def _borrowed_spread(dataset: Dataset, run_dir: Path, likelihood: str, per_class: int,
-                     spread_from: Path | None) -> Path:
+                     spread_from: Path | None, tails: bool = True) -> Path:
     """The spread file a data set without train classes takes (from ``spread_from``, else its own run)."""
-    source = spread_file(spread_from or run_dir, likelihood, per_class)
+    source = spread_file(spread_from or run_dir, likelihood, per_class, tails)
     if not source.is_file():
         raise EvaluationError(f"{dataset.root} has no train classes to fit the concept spread on: pass "
                               "--spread-from RUN, the evaluation of the model's own benchmark with the same "
                               f"settings (it holds {source.name}), or --spread-shots 0")
+    if tails and not json.loads(source.read_text()).get("tails"):
+        raise EvaluationError(f"{source} was written before concept spreads had fitted tails: evaluate "
+                              f"{source.parent} again (its posteriors are cached) or pass --gaussian-concepts")
     return source
 
 
@@ -55,19 +59,19 @@ def run_spread(dataset: Dataset, run_dir: Path, likelihood: str, config: Evaluat
     """The concept spread of a run's cached train posteriors (written to RUN/spread-LIKELIHOOD-N.json),
     or None when the distance asks for the paper's programs. A data set without train classes (ood,
     scored with another benchmark's model) takes the spread of ``spread_from``, that benchmark's run."""
-    per_class = config.distance.spread_shots
+    per_class, tails = config.distance.spread_shots, config.distance.tails
     if not per_class:
         return None
     if not dataset.classes("train"):
         spread = ConceptSpread.from_json(json.loads(_borrowed_spread(dataset, run_dir, likelihood, per_class,
-                                                                     spread_from).read_text()))
-        atomic_json(spread_file(run_dir, likelihood, per_class), spread.to_json())
+                                                                     spread_from, tails).read_text()))
+        atomic_json(spread_file(run_dir, likelihood, per_class, tails), spread.to_json())
         return spread
     programs = {name: [CachedPosterior.load(posterior_path(run_dir, likelihood, shot.index),
                                             config.distance.max_points).program
                        for shot in dataset.shots_of(name)[:per_class]] for name in dataset.classes("train")}
-    spread = fit_spread(programs, train_shapes(dataset))
-    atomic_json(spread_file(run_dir, likelihood, per_class), spread.to_json())
+    spread = fit_spread(programs, train_shapes(dataset), tails=tails)
+    atomic_json(spread_file(run_dir, likelihood, per_class, tails), spread.to_json())
     return spread
 
 
@@ -121,7 +125,8 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
                               "images; add them, or pass --spread-shots 0 for the paper's programs")
     if config.distance.spread_shots and not train:
         for likelihood in config.likelihoods:
-            _borrowed_spread(dataset, run_dir, likelihood, config.distance.spread_shots, spread_from)
+            _borrowed_spread(dataset, run_dir, likelihood, config.distance.spread_shots, spread_from,
+                             config.distance.tails)
     rules = rules_for(FittedModel(model_dir), dataset)            # the model folder is checked before any work
     if config.dask:
         check_scheduler(config.dask)
@@ -175,7 +180,8 @@ def evaluate(dataset_dir: str | Path, model_dir: str | Path, run_dir: str | Path
         files = write_tables(out, results, baselines_dir=run_dir)
         atomic_json(out / "results.json", {"dataset": str(dataset.root), "results": results,
                                            "distance": list(config.distance.properties),
-                                           "kl": config.distance.direction, "files": files})
+                                           "kl": config.distance.direction, "concept_tails": config.distance.tails,
+                                           "files": files})
         return results
 
 

@@ -14,14 +14,16 @@ def tables_dir(run_dir: Path, distance: DistanceConfig) -> Path:
     """Where a run's tables for ``distance`` go: the run folder for the default distance (all
     terms, the default spread and KL direction), ``RUN/distance-colour+class`` (say) for another, its terms in the order of
     ``PROPERTIES`` (the distance is their sum), with ``-spreadN`` (``spread0``: no spread) for
-    programs whose concept spread differs from the default and ``-kl-class-image`` (say) for the KL's
-    other direction; the posteriors are shared."""
+    programs whose concept spread differs from the default, ``-kl-class-image`` (say) for the KL's
+    other direction and ``-gaussian-concepts`` for Gaussian kernels; the posteriors are shared."""
     terms = [p for p in PROPERTIES if p in distance.properties]
     name = "" if tuple(terms) == PROPERTIES else "distance-" + "+".join(terms)
     if distance.spread_shots != DistanceConfig.spread_shots:
         name += ("-" if name else "") + f"spread{distance.spread_shots}"
     if distance.direction != DistanceConfig.direction:
         name += ("-" if name else "") + "kl-" + distance.direction.replace("||", "-")
+    if distance.tails != DistanceConfig.tails and distance.spread_shots:
+        name += ("-" if name else "") + ("concept-tails" if distance.tails else "gaussian-concepts")
     return Path(run_dir) / name if name else Path(run_dir)
 
 
