@@ -438,10 +438,12 @@ def write_paper_tables(out: Path, results: dict) -> None:
             "1 / their correlation area, 'sandwich noise' rows the same Gaussian at the power along the object's "
             "outline (the composite likelihood's sandwich adjustment). Rows "
             "without distance terms use all seven of the paper's terms, over programs widened by the concept "
-            "spread fitted on train classes unless marked 'no concept spread', each KL turned round "
+            "spread fitted on train classes unless marked 'no concept spread' (Student-t kernels whose tails are "
+            "fitted there too, unless marked 'Gaussian concept kernels'), each KL turned round "
             "(KL(C_I || C_k)) unless marked 'KL(class || image)', the paper's direction. Sigma and distance "
             "terms were chosen on train classes (experiments/select_sigma.py, experiments/select_distance.py), the "
-            "spread and the KL's direction on held-out train classes (experiments/select_spread.py). "
+            "spread, its tails and the KL's direction on held-out train classes (experiments/select_spread.py, "
+            "experiments/select_concept_tails.py). "
             "The paper's numbers are on its own data sets: compare in spirit.\n")
     atomic_write(out / "accuracy.md", markdown_table(header, rows) + note)
     with atomic_open(out / "accuracy.csv") as f:

@@ -78,7 +78,8 @@ def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_
 
     for name, accuracy in (("fsclvr", 0.5), ("fsclvr-sigma0.1", 0.9), ("fsclvr/distance-colour+class", 0.7),
                            ("fsclvr-sigma0.1/distance-colour", 0.8), ("fsclvr/spread0", 0.6),
-                           ("fsclvr/kl-class-image", 0.3), ("fsclvr/distance-colour-kl-class-image", 0.2)):
+                           ("fsclvr/kl-class-image", 0.3), ("fsclvr/distance-colour-kl-class-image", 0.2),
+                           ("fsclvr/gaussian-concepts", 0.45), ("fsclvr/kl-class-image-gaussian-concepts", 0.25)):
         (tmp_path / "runs" / name).mkdir(parents=True)
         (tmp_path / "runs" / name / "results.json").write_text(json.dumps({"results": {"p3": result(accuracy, 0.01)}}))
     # a baseline scored into runs/room, where no P3 run is (the P3 runs of a benchmark may all be fitted-noise ones)
@@ -88,7 +89,8 @@ def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_
     found = tables.collect(tmp_path)
     assert set(found) == {("fsclvr", None, None), ("fsclvr", 0.1, None), ("fsclvr", None, "colour+class"),
                           ("fsclvr", 0.1, "colour"), ("fsclvr", None, "spread0"), ("fsclvr", None, "kl-class-image"),
-                          ("fsclvr", None, "colour-kl-class-image")}
+                          ("fsclvr", None, "colour-kl-class-image"), ("fsclvr", None, "gaussian-concepts"),
+                          ("fsclvr", None, "kl-class-image-gaussian-concepts")}
     tables.write_paper_tables(tmp_path, found)
     lines = (tmp_path / "accuracy.md").read_text().splitlines()
     assert any(line.startswith("| ProtoNets 56 | this project | - | 40.0/40.0/40.0/40.0 |") for line in lines)
@@ -100,6 +102,9 @@ def test_run_names_round_trip_and_tables_keep_sigma_and_distance_runs_apart(tmp_
     assert any(line.startswith("| P3 (colour, KL(class || image)) | this project | 20.0/20.0/20.0/20.0 |")
                for line in lines)
     assert any(line.startswith("| P3 (no concept spread) | this project | 60.0/60.0/60.0/60.0 |") for line in lines)
+    assert any(line.startswith("| P3 (Gaussian concept kernels) | this project | 45.0/45.0/45.0/45.0 |") for line in lines)
+    assert any(line.startswith("| P3 (KL(class || image), Gaussian concept kernels) | this project | 25.0/25.0/25.0/25.0 |")
+               for line in lines)
     assert all((tmp_path / "figures" / f"{name}.png").stat().st_size > 5000
                for name in ("accuracy", "attributes", "reliability-fsclvr"))
     adi = (tmp_path / "adi.md").read_text()
@@ -556,3 +561,18 @@ def test_run_streams_replay_spends_one_run_per_round_and_keeps_the_leaders_secon
     assert probe.replay_streams([s[:2] for s in close], log_prior, 0.99, "one")[2]      # the cache held only two
     with pytest.raises(ValueError, match="unknown scheme"):
         probe.replay_streams(close, log_prior, 0.99, "two")
+
+
+def test_each_distance_writes_its_own_tables_folder(tmp_path):
+    """The default distance's tables go to the run folder; each other one to a folder named by what differs,
+    in the order collect() parses them back."""
+    from mitsuba_p3.concepts import DistanceConfig
+    from mitsuba_p3.evaluate import tables_dir
+
+    assert tables_dir(tmp_path, DistanceConfig()) == tmp_path
+    assert tables_dir(tmp_path, DistanceConfig(tails=False)) == tmp_path / "gaussian-concepts"
+    assert (tables_dir(tmp_path, DistanceConfig(direction="class||image", tails=False))
+            == tmp_path / "kl-class-image-gaussian-concepts")
+    assert tables_dir(tmp_path, DistanceConfig(spread_shots=0, tails=False)) == tmp_path / "spread0"  # no kernels to differ
+    assert (tables_dir(tmp_path, DistanceConfig(properties=("colour", "class"), tails=False))
+            == tmp_path / "distance-colour+class-gaussian-concepts")
