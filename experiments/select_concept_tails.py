@@ -18,6 +18,7 @@ tails) fitted on the other half, as ``select_kind_term.py`` does. Reads an evalu
 posteriors only.
 
     python experiments/select_concept_tails.py data/dark-lo out/eval-dark-tinted [--episodes 200] [--splits 4]
+        [--profile-only]
 """
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ import numpy as np
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.concepts import (CONTINUOUS, ConceptSpread, DistanceConfig, ProtoProgram, _kl_matrix, fit_spread,
-                                 fit_tail, student_log_norm)
+                                 fit_student, fit_tail, student_log_norm)
 from mitsuba_p3.evaluate.jobs import cached_train_posteriors
 from mitsuba_p3.evaluate.run import train_shapes
 
@@ -105,6 +106,15 @@ def per_property_tails(programs: dict, shapes: dict) -> ConceptSpread:
                          gaussian.classes, {name: fit[0] for name, fit in fits.items()})
 
 
+def print_profile(programs: dict) -> None:
+    """Each property's log likelihood of its within-class differences as a function of the degrees of freedom
+    (the scale fitted by EM at each): where the maximum lies, and how far a Gaussian is from it."""
+    for name in CONTINUOUS:
+        x = within_class_differences(programs, name)
+        row = {dof: round(fit_student(x, dof)[1], 1) for dof in (0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 6.0, np.inf)}
+        print(f"profile {name} ({len(x)} pairs): " + ", ".join(f"nu {k:g}: {v}" for k, v in row.items()))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("dataset", type=Path)
@@ -112,6 +122,8 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--splits", type=int, default=4, help="random halvings of the train classes")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--profile-only", action="store_true",
+                        help="only print each property's log likelihood against the degrees of freedom")
     args = parser.parse_args()
     dataset = load_dataset(args.dataset)
     config = DistanceConfig()
@@ -119,6 +131,9 @@ def main() -> None:
     programs = {c: [p.program for p in g.values()] for c, g in posteriors.items()}
     shapes = train_shapes(dataset)
     print(f"{sum(map(len, posteriors.values()))} train posteriors of {len(posteriors)} classes")
+    print_profile(programs)
+    if args.profile_only:
+        return
     print("tails fitted on every train class: shared " + json.dumps(fit_spread(programs, shapes, tails=True).to_json()["tails"])
           + ", per property " + json.dumps(per_property_tails(programs, shapes).to_json()["tails"])
           + ", moment-matched " + json.dumps(moment_matched(programs, shapes).to_json()["tails"]))
