@@ -31,8 +31,9 @@ import numpy as np
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.concepts import (CONTINUOUS, ConceptSpread, DistanceConfig, ProtoProgram, _kl_matrix, fit_spread,
-                                 fit_student, fit_tail, student_log_norm)
+                                 fit_student, fit_tail, student_log_likelihood)
 from mitsuba_p3.evaluate.jobs import cached_train_posteriors
+from mitsuba_p3.evaluate.metrics import held_out_episodes
 from mitsuba_p3.evaluate.run import train_shapes
 
 
@@ -40,12 +41,8 @@ def episode_accuracy(images: dict, n_way: int, k_shot: int, count: int, seed: in
     """Accuracy of seeded episodes among ``images`` (class -> image indices), as
     :func:`mitsuba_p3.evaluate.metrics.held_out_accuracy` draws them; ``kl(query, shots)`` is the
     distance of a query image from the class program of the (sorted) shots."""
-    rng = np.random.default_rng([seed, n_way])
-    names = sorted(images)
     correct = []
-    for _ in range(count):
-        chosen = [names[i] for i in rng.choice(len(names), size=n_way, replace=False)]
-        picks = [rng.choice(len(images[c]), size=k_shot + 1, replace=False) for c in chosen]
+    for chosen, picks in held_out_episodes({c: len(g) for c, g in images.items()}, n_way, k_shot, count, seed):
         shots = [tuple(sorted(images[c][s] for s in pick[:-1])) for c, pick in zip(chosen, picks)]
         queries = [images[c][pick[-1]] for c, pick in zip(chosen, picks)]
         distances = np.array([[kl(q, s) for s in shots] for q in queries])
@@ -69,15 +66,8 @@ MATCHED_GRID = (2.5, 3.0, 4.0, 6.0, 10.0, 20.0, 50.0, np.inf)
 
 def matched_log_likelihood(differences: np.ndarray, covariance: np.ndarray, dof: float) -> float:
     """log likelihood of differences (n, d) under a zero-mean Student-t of the given covariance."""
-    n, d = differences.shape
-    cholesky = np.linalg.cholesky(covariance + np.eye(d) * 1e-12)
-    squared = np.sum(np.linalg.solve(cholesky, differences.T) ** 2, axis=0)
-    log_det = np.sum(np.log(np.diag(cholesky)))
-    if np.isinf(dof):
-        return float(np.sum(-0.5 * squared) - n * (0.5 * d * np.log(2 * np.pi) + log_det))
-    shrink = (dof - 2.0) / dof
-    return float(np.sum(-0.5 * (dof + d) * np.log1p(squared / shrink / dof))
-                 + n * (student_log_norm(dof, d) - log_det - 0.5 * d * np.log(shrink)))
+    scale = covariance + np.eye(len(covariance)) * 1e-12
+    return student_log_likelihood(differences, scale if np.isinf(dof) else scale * (dof - 2.0) / dof, dof)
 
 
 def moment_matched(programs: dict, shapes: dict) -> ConceptSpread:

@@ -31,6 +31,7 @@ from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.concepts import ConceptSpread, DistanceConfig, ProtoProgram, _kl_matrix, fit_spread
 from mitsuba_p3.evaluate.jobs import (MATERIAL_RULE_FEATURES, PosteriorMisfits, cached_train_posteriors,
                                       rules_learnt_from)
+from mitsuba_p3.evaluate.metrics import held_out_episodes
 from mitsuba_p3.evaluate.run import train_shapes
 from mitsuba_p3.fit.attributes import rules_for
 from mitsuba_p3.fit.model import FittedModel
@@ -57,12 +58,8 @@ def episodes(fold: dict, metal: dict, error: float, n_way: int, k_shot: int, cou
              config: DistanceConfig, with_kind: bool) -> float:
     """Accuracy of seeded episodes among ``fold`` (class -> [(index, program)]), as
     :func:`mitsuba_p3.evaluate.metrics.held_out_accuracy` draws them, with or without the kind term."""
-    rng = np.random.default_rng([seed, n_way])
-    names = sorted(fold)
     correct = []
-    for _ in range(count):
-        chosen = [names[i] for i in rng.choice(len(names), size=n_way, replace=False)]
-        picks = [rng.choice(len(fold[c]), size=k_shot + 1, replace=False) for c in chosen]
+    for chosen, picks in held_out_episodes({c: len(g) for c, g in fold.items()}, n_way, k_shot, count, seed):
         support = [[fold[c][s] for s in pick[:-1]] for c, pick in zip(chosen, picks)]
         queries = [fold[c][pick[-1]] for c, pick in zip(chosen, picks)]
         classes = [ProtoProgram.merge([p for _, p in shots]) for shots in support]

@@ -250,19 +250,25 @@ def fit_student(x: np.ndarray, dof: float, iterations: int = 200) -> tuple[np.nd
     n, d = x.shape
     jitter = np.eye(d) * max(1e-12, 1e-9 * np.trace(x.T @ x) / max(n, 1) / d)
     scale = x.T @ x / n + jitter
-    for _ in range(1 if np.isinf(dof) else iterations):
+    for _ in range(0 if np.isinf(dof) else iterations):      # a Gaussian's maximum is the start itself
         squared = np.sum(np.linalg.solve(np.linalg.cholesky(scale), x.T) ** 2, axis=0)
-        weights = np.ones(n) if np.isinf(dof) else (dof + d) / (dof + squared)
-        new = (x * weights[:, None]).T @ x / n + jitter
+        new = (x * ((dof + d) / (dof + squared))[:, None]).T @ x / n + jitter
         if np.allclose(new, scale, rtol=1e-8, atol=0):
             break
         scale = new
+    return scale, student_log_likelihood(x, scale, dof)
+
+
+def student_log_likelihood(x: np.ndarray, scale: np.ndarray, dof: float) -> float:
+    """log likelihood of the rows of ``x`` (n, d) under a zero-mean multivariate Student-t of ``dof``
+    degrees of freedom and scale matrix ``scale`` (a Gaussian of that covariance for infinite dof)."""
+    n, d = x.shape
     cholesky = np.linalg.cholesky(scale)
     squared = np.sum(np.linalg.solve(cholesky, x.T) ** 2, axis=0)
     log_det = np.sum(np.log(np.diag(cholesky)))
     if np.isinf(dof):
-        return scale, float(np.sum(-0.5 * squared) - n * (0.5 * d * np.log(2 * np.pi) + log_det))
-    return scale, float(np.sum(-0.5 * (dof + d) * np.log1p(squared / dof)) + n * (student_log_norm(dof, d) - log_det))
+        return float(np.sum(-0.5 * squared) - n * (0.5 * d * np.log(2 * np.pi) + log_det))
+    return float(np.sum(-0.5 * (dof + d) * np.log1p(squared / dof)) + n * (student_log_norm(dof, d) - log_det))
 
 
 def fit_tail(differences: list[np.ndarray]) -> tuple[float, list[np.ndarray]]:

@@ -71,22 +71,28 @@ def classify_episodes(dataset: Dataset, cached: dict, n_way: int, k_shot: int, c
     return rows
 
 
+def held_out_episodes(sizes: dict[str, int], n_way: int, k_shot: int, episodes: int, seed: int):
+    """The seeded draws of :func:`held_out_accuracy` over classes of ``sizes`` (class -> how many images):
+    per episode, the chosen classes and, per class, the indices of its K shots followed by its query's."""
+    rng = np.random.default_rng([seed, n_way])
+    names = sorted(sizes)
+    for _ in range(episodes):
+        chosen = [names[i] for i in rng.choice(len(names), size=n_way, replace=False)]
+        yield chosen, [rng.choice(sizes[c], size=k_shot + 1, replace=False) for c in chosen]
+
+
 def held_out_accuracy(programs: dict[str, list[ProtoProgram]], n_way: int, episodes: int, seed: int,
                       config: DistanceConfig, k_shot: int = 1) -> float:
     """Mean accuracy of seeded N-way K-shot episodes over the classes of ``programs`` (class -> its
     shots' programs, K + 1 or more): per chosen class K shots, merged, are the support and another
     is the query. For choices made on train classes (``experiments/select_sigma.py``,
     ``experiments/select_distance.py``, ``experiments/select_spread.py``)."""
-    rng = np.random.default_rng([seed, n_way])
-    names = sorted(programs)
-    short = [c for c in names if len(programs[c]) < k_shot + 1]
+    short = [c for c in sorted(programs) if len(programs[c]) < k_shot + 1]
     if short:
         raise ValueError(f"{k_shot}-shot episodes need {k_shot + 1} programs per class; "
                          f"{', '.join(short[:3])}{' ...' if len(short) > 3 else ''} have fewer")
     correct = []
-    for _ in range(episodes):
-        chosen = [names[i] for i in rng.choice(len(names), size=n_way, replace=False)]
-        picks = [rng.choice(len(programs[c]), size=k_shot + 1, replace=False) for c in chosen]
+    for chosen, picks in held_out_episodes({c: len(p) for c, p in programs.items()}, n_way, k_shot, episodes, seed):
         support = [ProtoProgram.merge([programs[c][s] for s in pick[:-1]]) for c, pick in zip(chosen, picks)]
         queries = [programs[c][pick[-1]] for c, pick in zip(chosen, picks)]
         probabilities = classify_many(support, queries, config)
