@@ -274,8 +274,10 @@ def trace_plot(idata, path: str | Path, variables: Sequence[str] = ("shift", "sc
 
 def island_evidence(hypotheses: dict, path: str | Path, steps: Sequence[dict] | None = None) -> Path:
     """An SMC posterior's own diagnostic. Left: each independent run's log evidence per hypothesis
-    (dots), their pooled estimate (bar) and the posterior weight; runs of one hypothesis that disagree
-    by more than a few nats found different poses: the answer then depends on the seed. With the
+    (dots; beside them, where the run also estimated it by importance sampling, its tempered (x) and
+    importance (+) estimates, whose mean it keeps), their pooled estimate (bar) and the posterior weight;
+    runs of one hypothesis that disagree by more than a few nats found different poses: the answer then
+    depends on the seed. With the
     run's ``steps`` (:func:`mitsuba_p3.infer.tempering.record`), two more panels per step and run:
     the temperature lambda, and the incremental weights' ESS with each move's acceptance."""
     plt = _pyplot()
@@ -287,7 +289,14 @@ def island_evidence(hypotheses: dict, path: str | Path, steps: Sequence[dict] | 
     for i, name in enumerate(names):
         runs = hypotheses[name].get("island_log_evidence") or []
         ax.hlines(hypotheses[name]["log_evidence"], i - 0.3, i + 0.3, color="C0", lw=2)
-        ax.plot(np.full(len(runs), i, float) + np.linspace(-0.15, 0.15, len(runs)), runs, "o", color="C1", ms=5)
+        offsets = np.full(len(runs), i, float) + np.linspace(-0.15, 0.15, len(runs))
+        ax.plot(offsets, runs, "o", color="C1", ms=5, label="run (kept)" if i == 0 else None)
+        # with the importance-sampling evidence: the two estimates each run's kept one is the mean of
+        for key, marker, label in (("island_log_evidence_tempered", "x", "tempered"),
+                                   ("island_log_evidence_importance", "+", "importance")):
+            if hypotheses[name].get(key):
+                ax.plot(offsets + 0.08, hypotheses[name][key], marker, color="0.4", ms=4,
+                        label=label if i == 0 else None)
         gap = f"\ngap {max(runs) - min(runs):.1f}" if len(runs) > 1 else ""
         ax.annotate(f"p = {hypotheses[name]['weight']:.2f}{gap}", (i, hypotheses[name]["log_evidence"]),
                     textcoords="offset points", xytext=(0, 8), ha="center", fontsize=7)
@@ -296,6 +305,8 @@ def island_evidence(hypotheses: dict, path: str | Path, steps: Sequence[dict] | 
     ax.set_xticks(range(len(names)), names, fontsize=8)
     ax.set_ylabel("log evidence (nats)")
     ax.set_title("runs per hypothesis (bar: pooled; dots: runs)", fontsize=8)
+    if any(hypotheses[name].get("island_log_evidence_tempered") for name in names):
+        ax.legend(fontsize=6, loc="lower right")
     if steps:
         _tempering_panels(axes[0][1], axes[0][2], names, steps)
     figure.tight_layout()

@@ -38,7 +38,8 @@ the default scoring a scene whose object left the window by the window alone (th
 ``SMCConfig.inside_window``); ``smc-unfolded`` the default
 with the walk in z, not in a symmetry chart (the default before the chart walk); ``smc-jump`` the default with
 the material kind's jump; ``smc-fields-rounds4`` the default with up to four rounds of runs where the answer
-stays open (a seed's first two rounds are the default's own runs);
+stays open (a seed's first two rounds are the default's own runs); ``smc-fields-tempered`` the default with each
+run's evidence the tempered estimate alone (the default before the importance-sampling estimate, ``SMCConfig.importance``);
 ``mh-paper`` the MH evaluation preset with the paper's likelihood
 (sigma 1, no shadows), the project's old default; ``mh-fitted`` that sampler with the fitted
 noise. ``NAME:S`` runs a setting with S seeds instead of ``--seeds``. Needs a benchmark folder
@@ -82,7 +83,8 @@ CONFIGS = {"mh-paper": {"noise": "paper"}, "mh-fitted": {"noise": "fitted"},
            "smc-jump": {"noise": "fitted", "sampler": SMCConfig(jump=True)},
            "smc-fields": {"noise": "fields", "sampler": SMCConfig()},
            "smc-fields-one-round": {"noise": "fields", "sampler": SMCConfig(rounds=1)},
-           "smc-fields-rounds4": {"noise": "fields", "sampler": SMCConfig(rounds=4)}}
+           "smc-fields-rounds4": {"noise": "fields", "sampler": SMCConfig(rounds=4)},
+           "smc-fields-tempered": {"noise": "fields", "sampler": SMCConfig(importance=0)}}
 CHECKED = ("shift", "scale", "colour")
 
 

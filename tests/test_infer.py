@@ -1049,6 +1049,11 @@ def test_smc_runs_every_hypothesis_and_keeps_their_evidence(fitted, tmp_path, ki
     assert "accepted" not in saved.idata.sample_stats and np.isnan(saved.summary()["r_hat"]).all()
     assert all(len(v["island_log_evidence"]) == v["runs"] for v in hypotheses.values())
     assert (saved.statistic("island_gap") is None) == (islands == 1 and rounds == 1)
+    # each run keeps the mean of its tempered and its importance-sampling estimate (mitsuba_p3.infer.importance)
+    for v in hypotheses.values():
+        kept = np.logaddexp(v["island_log_evidence_tempered"], v["island_log_evidence_importance"]) - np.log(2)
+        np.testing.assert_allclose(v["island_log_evidence"], kept, rtol=1e-12)
+        assert all(1.0 <= e <= SMCConfig().importance for e in v["importance_ess"])
 
 
 @pytest.mark.slow
@@ -1249,14 +1254,15 @@ def test_sbc_ranks_are_uniform_for_an_exact_posterior_and_not_for_a_narrow_one()
 
 def test_an_sbc_cache_made_before_a_default_changed_is_not_resumed_under_it():
     """An SBC cache's tag names the settings that differ from the first caches' defaults: one made
-    without the wide start or the second round (tag "{}") does not match today's default, which names both."""
+    without the wide start, the second round or the importance estimate (tag "{}") does not match today's default, which names both."""
     from mitsuba_p3.evaluate.sbc import settings_tag
     from mitsuba_p3.infer.smc import SMCConfig
 
     assert settings_tag(SMCConfig(wide=1, wide_steps=0, coarse=1, symmetry="free", chart=False, inside_window=False,
-                                  rounds=1, seed=5)) == "{}"
+                                  rounds=1, importance=0, seed=5)) == "{}"
     assert json.loads(settings_tag(SMCConfig())) == {"wide": 4, "wide_steps": 6, "coarse": 2, "symmetry": "rendered",
-                                                  "chart": True, "inside_window": True, "rounds": 2}
+                                                  "chart": True, "inside_window": True, "rounds": 2,
+                                                  "importance": 256}
     assert json.loads(settings_tag(SMCConfig(islands=3)))["islands"] == 3
 
 

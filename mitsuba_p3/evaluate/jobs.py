@@ -156,7 +156,11 @@ def _particle_arrays(particles) -> dict:
             "particles_logprior": np.asarray(rows.state.logprior, np.float32),
             "particles_log_evidence": np.asarray(rows.log_evidence, np.float64),
             "particles_temperatures": np.int64(rows.temperatures),
-            "particles_window": np.asarray(particles.window if particles.window else [], np.int64)}
+            "particles_window": np.asarray(particles.window if particles.window else [], np.int64),
+            # with the importance-sampling evidence: each run's tempered estimate beside the kept one
+            **({} if rows.tempered is None else
+               {"particles_log_evidence_tempered": np.asarray(rows.tempered, np.float64),
+                "particles_log_evidence_importance": np.asarray(rows.importance, np.float64)})}
 
 
 def _cached_particles(path: Path):

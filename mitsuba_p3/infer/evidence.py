@@ -5,8 +5,9 @@ Every run (row) of hypothesis h gives an unbiased estimate of its evidence Z_h, 
 as the log of their mean (:func:`pooled_evidence`). Their spread is the Monte Carlo error that the
 decision between hypotheses must beat (:func:`decision`), and the spread of the leading
 hypothesis's runs, the **island gap**, is the SMC's convergence diagnostic: two runs that found
-the same posterior agree to about sqrt(T / N) nats; a run that missed the pose estimates tens of
-nats low (:func:`island_gap`). Against the empty floor, the evidence says whether the image shows
+the same posterior agree to their estimates' error (about a nat with each run's importance-sampling
+estimate, :mod:`~mitsuba_p3.infer.importance`); a run that missed the pose estimates tens of nats low
+(:func:`island_gap`). Against the empty floor, the evidence says whether the image shows
 an object at all (:func:`object_evidence`), and a run whose particles never rendered the object is
 counted as lost (:func:`mark_lost_runs`).
 """
@@ -73,8 +74,8 @@ def shape_weights(statistics: dict) -> dict:
 
 def island_gap(statistics: dict) -> float | None:
     """The spread (max - min, nats) of the leading hypothesis's runs' log evidence: how far two
-    independent SMC runs of the answer disagree. About sqrt(T / N) nats when they explored alike; tens
-    of nats when one run missed the pose the other found. None with a single run."""
+    independent SMC runs of the answer disagree. About a nat when they explored alike; tens of nats when
+    one run missed the pose the other found. None with a single run."""
     hypotheses = statistics["hypotheses"]
     leader = max(hypotheses, key=lambda name: hypotheses[name]["weight"])
     runs = hypotheses[leader].get("island_log_evidence") or []

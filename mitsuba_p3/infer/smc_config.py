@@ -19,7 +19,7 @@ from .smc_moves import SYMMETRY_MOVES
 # Settings whose default changed after they were added, at the value they had before: a record (an
 # evaluation's run.json, an SBC cache's tag) that does not name them was made with these values
 DEFAULTS_BEFORE = {"wide": 1, "wide_steps": 0, "coarse": 1, "symmetry": "free", "chart": False, "inside_window": False,
-                   "rounds": 1}
+                   "rounds": 1, "importance": 0}
 
 
 @dataclass(frozen=True)
@@ -78,6 +78,11 @@ class SMCConfig:
     # waste-free SMC (Dau and Chopin 2022), P > 1: each step resamples N / P particles and keeps every state
     # of P - 1 sweeps from each (mcmc_steps and final_steps then unused)
     waste_free: int = 0
+    # each run's evidence also estimated by importance sampling from a Student-t fitted to its final particles
+    # (this many draws, one render each), the run keeping the mean of both estimates (:mod:`~mitsuba_p3.infer.
+    # importance`); 0: the tempered estimate alone. Chosen on train posteriors of four worlds (docs/notebook.md,
+    # "The evidence of a finished run")
+    importance: int = 256
     # NP3 only: start from P3's final particles and temper the neural term in (:func:`bridge`),
     # rather than temper all of NP3's likelihood in from the prior
     bridge: bool = True
@@ -89,7 +94,7 @@ class SMCConfig:
         check_counts(self, {"particles": 4, "oversample": 1, "mcmc_steps": 1, "material_every": 1, "final_steps": 0,
                             "gradient_steps": 0, "final_gradient_steps": 0, "islands": 1, "rounds": 1,
                             "max_temperatures": 1, "draws": 4, "seed": 0, "ridge": 0, "waste_free": 0, "wide": 1,
-                            "wide_steps": 0, "coarse": 1}, "smc ")
+                            "wide_steps": 0, "coarse": 1, "importance": 0}, "smc ")
         if self.wide_steps and self.wide > 1 and (self.persistent or self.waste_free > 1):
             raise ConfigError("smc wide start excludes persistent sampling and waste-free SMC (with them, set "
                               "smc.wide_steps=0)")
