@@ -20,7 +20,8 @@ so a posterior has four copies of each pose. The run's particles are folded into
 a multivariate Student-t (``dof``) is fitted there to their mean and covariance (the class logits, fixed
 within a hypothesis, left out), and each draw is turned into a copy chosen uniformly: q is the mixture of
 the four turned t's, its density summed over the four turns back (with the turn's Jacobian in the
-logistic yaw coordinate). The Student-t's tails keep the weights bounded where a Gaussian's would not.
+logistic yaw coordinate). Its heavy tails keep the weights bounded far from the particles, where a
+Gaussian fitted to them would not.
 
 **The estimate a run keeps** is the mean of the two unbiased estimates, (Z_SMC + Z_IS) / 2, again
 unbiased: where the importance weights degenerate (a run whose particles collapsed onto a few points, or
