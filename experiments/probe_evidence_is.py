@@ -32,6 +32,7 @@ import argparse
 import json
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 from scipy import special
@@ -40,6 +41,7 @@ from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.evaluate.jobs import posterior_path
 from mitsuba_p3.fit.model import FittedModel
 from mitsuba_p3.infer import importance
+from mitsuba_p3.infer.evidence import pooled_evidence
 from mitsuba_p3.infer.posterior import PosteriorModel, default_likelihood
 from mitsuba_p3.infer.smc import outside_window
 from mitsuba_p3.infer.smc_config import SMCConfig
@@ -83,8 +85,7 @@ def proposal(particles: np.ndarray, kind: str, inflate: float, dof: float, rng, 
 
 def shape_probabilities(index: np.ndarray, log_evidence: np.ndarray, space) -> np.ndarray:
     """p(shape | I) from per-run log evidence estimates: each hypothesis's runs pooled as the log of their mean."""
-    pooled = np.array([special.logsumexp(log_evidence[index == h]) - np.log(np.sum(index == h))
-                       if np.any(index == h) else -np.inf for h in range(len(space.names))])
+    pooled = pooled_evidence(SimpleNamespace(index=index, log_evidence=log_evidence), len(space.names))
     log_post = space.log_prior + pooled
     weights = np.exp(log_post - special.logsumexp(log_post))
     return np.array([weights[space.classes == c].sum() for c in range(len(SHAPES))])
@@ -153,11 +154,8 @@ def main() -> None:
                 full[:, FREE] = x
                 if args.fold and fitted_t is not None:       # a uniform copy of the chart's draw: q is the four copies' mixture
                     full = quarter_turn(full, rng.integers(4, size=args.draws))[0]
-                    logs = []
-                    for k in range(4):
-                        back, log_j = quarter_turn(full, np.full(args.draws, -k))
-                        logs.append(t_logpdf(back[:, FREE], *fitted_t) + log_j)
-                    log_q = special.logsumexp(np.stack(logs), axis=0) - np.log(4)
+                    fitted = importance.Proposal(fitted_t[0][None], fitted_t[1][None], fitted_t[2], full[:1])
+                    log_q = importance.log_density(fitted, full[None])[0]
                 full = full.astype(np.float32)
                 ll, lp = kern.score(full.reshape(1, args.draws, 15), np.asarray([index[r]], np.int32), observation)
                 log_w = np.asarray(ll, np.float64)[0] + np.asarray(lp, np.float64)[0] - log_q
@@ -178,12 +176,10 @@ def main() -> None:
                "p_true_mix": float(p_mix[truth]), "right_mix": bool(np.argmax(p_mix) == truth),
                "mix_gap": float(np.ptp(mixed[mine])) if len(mine) > 1 else 0.0,
                "index_all": index.tolist(), "smc_all": smc.tolist(), "is_all": estimates.tolist(), "ess_all": ess}
-        estimates = row["is"]
-        ess = row["ess"]
         rows.append(row)
         print(f"{shot.index:5d} {shot.cls.name:<28} SMC {' '.join(f'{v:8.1f}' for v in row['smc'])} gap "
-              f"{row['smc_gap']:5.1f} | IS {' '.join(f'{v:8.1f}' for v in estimates)} gap {row['is_gap']:5.1f} "
-              f"| ESS {' '.join(f'{v:5.1f}' for v in ess)} | best spread {row['best_spread']:5.1f} drift {drift:.2g}",
+              f"{row['smc_gap']:5.1f} | IS {' '.join(f'{v:8.1f}' for v in row['is'])} gap {row['is_gap']:5.1f} "
+              f"| ESS {' '.join(f'{v:5.1f}' for v in row['ess'])} | best spread {row['best_spread']:5.1f} drift {drift:.2g}",
               flush=True)
     smc_gaps = np.array([r["smc_gap"] for r in rows])
     is_gaps = np.array([r["is_gap"] for r in rows])
