@@ -1180,6 +1180,9 @@ def test_bridge_from_p3_adds_the_neural_terms_evidence(fitted):
     # to float32's resolution: the evidence is thousands of nats, summed from float32 log likelihoods (a walk
     # written out rather than through LAPACK moved one run by 0.002 of 3473); a wrong increment is nats off
     np.testing.assert_allclose(rows.log_evidence, expected, rtol=2e-6, atol=1e-3)
+    # P3's tempered and importance estimates carry over, each times the bridge's factor: their mean is still the kept one
+    np.testing.assert_allclose(rows.tempered - start.tempered, rows.log_evidence - start.log_evidence)
+    np.testing.assert_allclose(np.logaddexp(rows.tempered, rows.importance) - np.log(2), rows.log_evidence, rtol=1e-12)
     # the final particles are NP3's: their log likelihoods are NP3's own, not P3's (the neural term is
     # at least 4 nats here, 14 at the median). Nearly all agree to 1e-2; one particle of one fresh-clone
     # run differed by a nat (cause not found: the bases and the direct render agree bit for bit), so each

@@ -74,5 +74,9 @@ def bridge(core, observation, start, config, key, progress: Callable[[str, int, 
             progress("bridge", int(100 * state.tempering[0]), 100)
     logprior = np.asarray(kernels.prior(jnp.asarray(state.position), index), np.float32)
     final = SMCState(state.position, (state.logprior - logprior + state.loglikelihood).astype(np.float32), logprior)
+    # P3's two estimates of each run (:mod:`~mitsuba_p3.infer.importance`), each times the bridge's factor
+    bridged = state.log_evidence - start.log_evidence
+    shifted = lambda estimate: None if estimate is None else estimate + bridged  # noqa: E731
     return Rows(np.asarray(start.index), final, state.log_evidence, start.temperatures + len(steps),
-                start.steps + [tempering.record(info, start.index) for info in steps])
+                start.steps + [tempering.record(info, start.index) for info in steps], shifted(start.tempered),
+                shifted(start.importance), start.importance_ess)
