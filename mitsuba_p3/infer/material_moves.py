@@ -8,7 +8,7 @@ function of the material,
 
 affine in the colour c given the weights (k_a, k_d, k_s) and affine in the weights given the colour. Under
 the Gaussian part of the likelihood and the GMM priors each conditional is then a Gaussian mixture
-(:class:`MixtureConditional`); a draw from it is an independence proposal, accepted by MH with the exact
+(:class:`~mitsuba_p3.infer.material_conditional.MixtureConditional`); a draw from it is an independence proposal, accepted by MH with the exact
 (tempered) log joint computed from the bases without another render, so clipping, the noise's outliers and
 the neural term stay exact. The precision-weighted inner products of the bases (:meth:`MaterialMoves._gram`)
 are all either conditional needs; the shading fields (:mod:`mitsuba_p3.fit.fields`) take their low-rank part
@@ -20,64 +20,16 @@ of z for an observation, and the pixels its object covers), ``_score`` and ``win
 """
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import numpy as np
 
 from .. import small_linalg
 from ..fit.fields import COLOURED
 from ..space import SLICES
 from .likelihood import fields_form, fields_masks, fields_regions, whiten
+from .material_conditional import MixtureConditional
 
 # The ridge move's step: log s ~ N(0, RIDGE_STEP^2), a fifth of an e-fold of the colour's brightness.
 RIDGE_STEP = 0.2
-
-
-class MixtureConditional(NamedTuple):
-    """A material conditional that is a mixture of trivariate Gaussians (component log weights (C,), means
-    (C, 3), precisions and their Cholesky factors (C, 3, 3), log determinants (C,)), in natural units: the
-    weights' (k_a, k_d, k_s) given the colour, the pose, the class and the shininess; the colour's given
-    the weights where the noise couples the channels."""
-    log_mix: object
-    mean: object
-    precision: object
-    chol: object
-    log_det_p: object
-
-    @classmethod
-    def of(cls, log_w, mu, var, lam, eta) -> "MixtureConditional":
-        """The conditional of x under a prior mixture of diagonal Gaussians (log weights (C,), means and
-        variances (C, 3)) times a Gaussian likelihood exp(-x'lam x / 2 + eta'x) (lam (3, 3), eta (3,)):
-        each component's posterior, and its weight by the component's evidence."""
-        import jax
-        import jax.numpy as jnp
-
-        precision = jax.vmap(jnp.diag)(1.0 / var) + lam                             # (C, 3, 3)
-        h = mu / var + eta
-        chol = small_linalg.cholesky(precision, jnp)         # no LAPACK call (small_linalg)
-        mean = small_linalg.solve(chol, h, jnp)
-        log_det_p = small_linalg.log_det(chol, jnp)
-        log_evidence = (-0.5 * jnp.sum(jnp.log(var), axis=1) - 0.5 * log_det_p + 0.5 * jnp.sum(h * mean, axis=1)
-                        - 0.5 * jnp.sum(mu * mu / var, axis=1))
-        return cls(jax.nn.log_softmax(log_w + log_evidence), mean, precision, chol, log_det_p)
-
-    def log_q(self, w):
-        import jax
-        import jax.numpy as jnp
-
-        d = w - self.mean                                                           # (C, 3)
-        quad = jnp.einsum("ci,cij,cj->c", d, self.precision, d)
-        return jax.scipy.special.logsumexp(self.log_mix + 0.5 * self.log_det_p - 1.5 * jnp.log(2 * jnp.pi)
-                                           - 0.5 * quad)
-
-    def draw(self, key):
-        import jax
-        import jax.numpy as jnp
-
-        k_combo, k_noise = jax.random.split(key)
-        combo = jax.random.categorical(k_combo, self.log_mix)
-        noise = jax.random.normal(k_noise, (3,))
-        return self.mean[combo] + small_linalg.backward(self.chol[combo], noise, jnp)
 
 
 class MaterialMoves:
