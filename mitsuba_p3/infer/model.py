@@ -4,27 +4,24 @@
 
 log p(z) is the prior pushed back through the bijectors (with log-Jacobians,
 :class:`mitsuba_p3.fit.priors.Prior`); f maps z to the renderer contract. The
-render comes from Mitsuba through ``jax.pure_callback`` -- under ``vmap`` over
-chains the callback receives every chain's parameters at once
-(``vmap_method="expand_dims"``), so one step of all chains is one batched
-Mitsuba launch -- or, with ``renderer="jax"``, from the pure-JAX tracer.
+render comes from Mitsuba through ``jax.pure_callback`` (one batched launch per
+step of all chains) or, with ``renderer="jax"``, from the pure-JAX tracer
+(:mod:`mitsuba_p3.infer.render_functions`).
 """
 from __future__ import annotations
 
 import functools
-from typing import Callable
-
 import numpy as np
 
 from ..fit.fields import COLOURED
 from ..fit.model import FittedModel
 from ..fit.priors import Prior
 from ..render import RENDERERS
-from ..render.contract import OBJECT_SHAPES
-from ..space import DIMENSION, HYPOTHESES, OBJECT_KEYS, SLICES, render_params
+from ..space import DIMENSION, HYPOTHESES, SLICES, render_params
 from .likelihood import LikelihoodConfig, observe, score
 from .material_moves import MaterialMoves
 from .mcmc import Target
+from .render_functions import jax_render_function, mitsuba_render_function
 from .window import OUTSIDE_WINDOW, pixel_of, window_for, window_log_term
 
 
@@ -33,96 +30,6 @@ def contract_params(prior: Prior, z) -> dict:
     import jax.numpy as jnp
 
     return render_params(prior.constrain(z), xp=jnp)
-
-
-def mitsuba_render_function(renderer, bases: bool = False, window: tuple[int, int] | None = None,
-                            objects: bool = False) -> Callable:
-    """A JAX function params -> image(s) that renders with Mitsuba on the host.
-
-    Works on one parameter set (image (H, W, 3)) and under ``jax.vmap`` (the
-    callback then gets all sets at once and renders them in one launch). With
-    ``bases`` it returns the material bases (H, W, 4, 3) of ``renderer.render_bases``.
-    With ``window`` (height, width) the function is ``render(params, offset)``: only the
-    window of the image whose top-left pixel is ``offset`` (2,) (:meth:`MitsubaRenderer.window`).
-    With ``objects`` it returns (image or bases, the pixels the object covers (H, W) bool), both from
-    the one render: the shading fields' regions without tracing the object again in JAX.
-    """
-    import jax
-    import jax.numpy as jnp
-
-    height, width = window or (renderer.height, renderer.width)
-    pixel = (4, 3) if bases else (3,)
-    views = {}
-
-    def host(*arrays):
-        if window:
-            # the offset is the same for the whole batch (it belongs to the observation)
-            top, left = (int(v) for v in np.asarray(arrays[-1]).reshape(-1, 2)[0])
-            arrays = arrays[:-1]
-            if (top, left) not in views:
-                views.clear()
-                views[top, left] = renderer.window(top, left, height, width)
-            view = views[top, left]
-        else:
-            view = renderer
-        # Under vmap an argument that is not batched arrives with size-1 leading axes:
-        # broadcast every argument to the common batch shape, then flatten it.
-        leading = [np.shape(a)[:np.ndim(a) - len(OBJECT_SHAPES[k])] for k, a in zip(OBJECT_KEYS, arrays)]
-        batch_shape = np.broadcast_shapes(*leading)
-        count = int(np.prod(batch_shape, dtype=np.int64))
-        params = {key: np.broadcast_to(a, batch_shape + OBJECT_SHAPES[key]).reshape((count,) + OBJECT_SHAPES[key])
-                  for key, a in zip(OBJECT_KEYS, arrays)}
-        out = (view.render_bases if bases else view.render)(params, **({"objects": True} if objects else {}))
-        images, covered = out if objects else (out, None)
-        images = np.asarray(images, np.float32).reshape(batch_shape + (height, width) + pixel)
-        return (images, np.asarray(covered, bool).reshape(batch_shape + (height, width))) if objects else images
-
-    def render(params: dict, offset=None):
-        batch_shape = jnp.shape(params["theta"])
-        out = jax.ShapeDtypeStruct(batch_shape + (height, width) + pixel, jnp.float32)
-        if objects:
-            out = (out, jax.ShapeDtypeStruct(batch_shape + (height, width), jnp.bool_))
-        extra = [jnp.asarray(offset, jnp.int32)] if window else []
-        return jax.pure_callback(host, out, *[params[k] for k in OBJECT_KEYS], *extra, vmap_method="expand_dims")
-
-    return render
-
-
-def jax_render_function(renderer, bases: bool = False, window: tuple[int, int] | None = None) -> Callable:
-    """A JAX function params -> image(s) (or bases) that renders with the JAX tracer: no callback,
-    the whole likelihood stays a JAX program (on a GPU, on the device).
-
-    Under ``jax.vmap`` a traced shape class would turn the tracer's ``lax.switch``
-    over classes into a select that renders every class for every chain; the custom
-    vmap rule instead hands the whole batch to the tracer's batched render, which
-    renders it as the device prefers (:func:`~mitsuba_p3.render.jax_tracer.batching_for`).
-    With ``window`` (height, width) the function is ``render(params, offset)``, as
-    :func:`mitsuba_render_function`'s.
-    """
-    import jax
-    import jax.numpy as jnp
-
-    # numpy, not JAX arrays: this may be built while a sampler is being traced (a window's function is
-    # made on first use), and a JAX array made then would be that trace's tracer, leaking into the next
-    shared = {k: np.asarray(v) for k, v in renderer.params.items() if k not in OBJECT_KEYS}
-
-    def draw(params: dict, offset):
-        constants = {k: jnp.asarray(v) for k, v in shared.items()}     # made in the trace that uses them
-        return renderer.render_jax({**constants, **params}, bases=bases, window=(offset, window) if window else None)
-
-    render = jax.custom_batching.custom_vmap(draw)
-
-    @render.def_vmap
-    def render_batch(axis_size, in_batched, params, offset):
-        flags = in_batched[0]
-        params = {k: v if flags[k] else jnp.broadcast_to(v, (axis_size,) + jnp.shape(v)) for k, v in params.items()}
-        if in_batched[1]:        # the offset belongs to the observation: the same for the whole batch
-            offset = offset[0]
-        return draw(params, offset), True
-
-    if window:
-        return lambda params, offset: render(params, jnp.asarray(offset, jnp.int32))
-    return lambda params: render(params, jnp.zeros(2, jnp.int32))
 
 
 class PosteriorCore(MaterialMoves):
