@@ -8,11 +8,15 @@ Every timed render changes the object's pose and material, as MCMC does.
 ``--wide 256,4096`` adds the JAX tracer's wide batches at 120x160 with both
 batchings (``map``: one image after another, the CPU's default; ``vmap``: one
 launch, the GPU's default), each with the images copied to the host (``render``)
-and kept on the device (``render_jax`` under jit). The report starts with where
+and kept on the device (``render_jax`` under jit). ``--callbacks 128,512`` adds Mitsuba inside
+JAX as the SMC calls it (``jit(vmap(...))`` of the 56x72 scoring window with the object's pixels,
+image and material bases) through ``jax.pure_callback`` (numpy images copied into XLA) and in place
+(``buffer_callback``: Dr.Jit renders into XLA's buffers), interleaved, and which one is the default
+here (:func:`mitsuba_p3.infer.render_functions.mitsuba_render_function`). The report starts with where
 it ran (variant, CPU cores, GPU, JAX's backend); without Mitsuba installed (a GPU
 machine with JAX only) ``--renderers jax`` still runs.
 
-    python scripts/bench_render.py [--repeats 50] [--renderers mitsuba,jax] [--wide 256,4096]
+    python scripts/bench_render.py [--repeats 50] [--renderers mitsuba,jax] [--wide 256,4096] [--callbacks 128,512]
 """
 from __future__ import annotations
 
@@ -142,6 +146,45 @@ def bench_wide(scene, batches: list[int], repeats: int) -> dict:
     return out
 
 
+def bench_callbacks(scene, batches: list[int], repeats: int) -> dict:
+    """Mitsuba inside JAX, the SMC's windowed call, through pure_callback and in place (ms per call)."""
+    import jax
+    import jax.numpy as jnp
+
+    from mitsuba_p3.infer.render_functions import in_place_available, mitsuba_render_function
+    from mitsuba_p3.render import make_renderer
+    from mitsuba_p3.space import OBJECT_KEYS
+
+    renderer = make_renderer(scene, "mitsuba", height=120, width=160)
+    out: dict = {"in_place_available": in_place_available(), "default_in_place_here": bool(
+        renderer.on_device and in_place_available())}
+    if not in_place_available():
+        return out
+    rng = np.random.default_rng(2)
+    offset = jnp.array([30, 40], jnp.int32)
+    for bases in (False, True):
+        calls = {way: jax.jit(jax.vmap(lambda p, f=mitsuba_render_function(renderer, bases, (56, 72), True, in_place=way):
+                                       f(p, offset)))
+                 for way in (False, True)}
+        for batch in batches:
+            params = {k: jnp.asarray(v) for k, v in renderer.merged(_object_params(rng, batch)).items()
+                      if k in OBJECT_KEYS}
+            times: dict = {False: [], True: []}
+            for call in calls.values():
+                jax.block_until_ready(call(params))
+            for _ in range(max(5, repeats // 5)):
+                for way, call in calls.items():         # interleaved: both see the same machine
+                    start = time.perf_counter()
+                    jax.block_until_ready(call(params))
+                    times[way].append(time.perf_counter() - start)
+            tag = f"{'bases' if bases else 'image'}_batch{batch}"
+            pure, in_place = (1e3 * statistics.median(times[w]) for w in (False, True))
+            out[f"{tag}_ms_pure_callback"] = round(pure, 3)
+            out[f"{tag}_ms_in_place"] = round(in_place, 3)
+            out[f"{tag}_in_place_over_pure"] = round(in_place / pure, 3)
+    return out
+
+
 def where() -> dict:
     """Where this ran: the Mitsuba variant (when Mitsuba is installed), CPU cores, GPU, JAX's backend."""
     from mitsuba_p3 import backend
@@ -157,9 +200,11 @@ def where() -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=50)
-    parser.add_argument("--renderers", default="mitsuba,jax", help="comma-separated renderer names")
+    parser.add_argument("--renderers", default="mitsuba,jax", help="comma-separated renderer names ('' for none)")
     parser.add_argument("--scene", default=str(ROOT / "scenes" / "fsclvr.xml"))
     parser.add_argument("--wide", default="", help="comma-separated wide batch sizes for the JAX tracer")
+    parser.add_argument("--callbacks", default="", help="comma-separated batch sizes: Mitsuba inside JAX, "
+                                                         "pure_callback against in place")
     args = parser.parse_args()
 
     from mitsuba_p3.scene import load_scene
@@ -172,10 +217,13 @@ def main() -> None:
                           "jax": {"single_ms_120x160": 2.0, "batch_ms_per_image_120x160": "<= single"}},
               "paper_jax_tracer_ms_on_this_machine": {"single_120x160": 3.5, "single_480x640": 101.0,
                                                       "forward_backward_120x160": 10.6}}
-    for kind in args.renderers.split(","):
+    for kind in filter(None, args.renderers.split(",")):
         report[kind] = bench(kind, scene, args.repeats)
     if args.wide:
         report["jax_wide_120x160"] = bench_wide(scene, [int(b) for b in args.wide.split(",")], args.repeats)
+    if args.callbacks:
+        report["mitsuba_in_jax_window_56x72"] = bench_callbacks(scene, [int(b) for b in args.callbacks.split(",")],
+                                                                args.repeats)
     print(json.dumps(report, indent=2))
 
 

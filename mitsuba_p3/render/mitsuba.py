@@ -225,6 +225,56 @@ class MitsubaRenderer(Renderer):
         out, covered = self._evaluated(merged, bases, objects=True)
         return (out, covered) if is_batched(merged) else (out[0], covered[0])
 
+    @property
+    def on_device(self) -> bool:
+        """Whether renders run on a GPU (``cuda_ad_rgb``): where :meth:`render_into` pays, as images need
+        not cross to the host and back (on the CPU :meth:`render`'s numpy copies are as fast)."""
+        return _BACKEND == dr.JitBackend.CUDA
+
+    @staticmethod
+    def host_array(buffer) -> np.ndarray:
+        """A numpy copy of a small array that may live on the device Dr.Jit renders on: a numpy array or
+        a CPU buffer as it is, a device buffer (DLPack) through Dr.Jit's tensor of its type."""
+        try:
+            return np.asarray(buffer)
+        except (TypeError, ValueError, RuntimeError):
+            kind = {np.dtype(np.float32): "TensorXf", np.dtype(np.int32): "TensorXi"}[np.dtype(buffer.dtype)]
+            return getattr(mi, kind)(buffer).numpy()
+
+    def render_into(self, params: Mapping[str, np.ndarray] | None, image, covered=None, bases: bool = False) -> None:
+        """Render the contract mapping straight into ``image``: a writable, C-ordered float32 array of
+        B x H x W x 3 values (B x H x W x 4 x 3 with ``bases``; B the batch of ``params``, any shape with
+        that many values) that Dr.Jit maps without a copy: a numpy array, or a JAX buffer through DLPack
+        (:func:`mitsuba_p3.infer.render_functions.mitsuba_render_function`), on the CPU or the device
+        Dr.Jit renders on. With ``covered`` (B x H x W float32), also the object's pixels (1 where the
+        ray meets the object first). The same launch and values as :meth:`render` /
+        :meth:`render_bases`; no image passes through the host."""
+        p = self._to_drjit_cached(self.merged(params))
+        pixels = p.batch * self.height * self.width
+        check_memory(pixels, self.memory_limit, "bases" if bases else "image")
+        dr.detail.new_scope(_BACKEND)  # see render_drjit
+        self._set_pattern(p)
+        shaded, hit_object = self._shade(p, bases=bases, objects=True)
+        flat = [part[channel] for part in (shaded if bases else (shaded,)) for channel in range(3)]
+        targets = [(mi.TensorXf(image).array, flat)]
+        if covered is not None:
+            targets.append((mi.TensorXf(covered).array, [dr.select(hit_object, 1.0, 0.0)]))
+        # the shading in one kernel (scattered from directly, Dr.Jit would trace it once per output),
+        # then per output one small kernel that interleaves its channels into it, pixel-major
+        dr.eval(*(value for _, values in targets for value in values))
+        for target, values in targets:
+            if dr.width(target) != pixels * len(values):
+                raise ValueError(f"render_into: an output of {dr.width(target)} values, expected "
+                                 f"{pixels} pixels x {len(values)}")
+            slot = dr.arange(mi.UInt32, pixels * len(values))
+            pixel, channel = slot // len(values), slot % len(values)
+            value = dr.zeros(mi.Float, dr.width(slot))
+            for k, channel_values in enumerate(values):
+                value = dr.select(channel == k, dr.gather(mi.Float, channel_values, pixel, channel == k), value)
+            dr.scatter(target, value, slot)
+        dr.eval(*(target for target, _ in targets))
+        dr.sync_thread()    # written before the caller (XLA, on a device: its own stream) reads them
+
     def _evaluated(self, merged: dict, bases: bool, objects: bool = False) -> tuple:
         """(B, H, W, 3) colours, or (B, H, W, 4, 3) bases, and with ``objects`` the (B, H, W) object
         pixels, evaluated in one launch (no AD)."""

@@ -6,11 +6,11 @@ python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upg
 export PYTHONPATH=/tmp/site:$PWD
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv | tee $OUT/gpu.txt
 python3 -m mitsuba_p3.cli doctor 2>&1 | tee $OUT/doctor.txt
-echo "== tests on the GPU (render, gradients, JAX tracer, backend)"
+echo "== tests on the GPU (render, gradients, JAX tracer, backend, Mitsuba inside JAX in place)"
 timeout 200 python3 -m pytest -q -p no:cacheprovider -o addopts="" -m "not slow" tests/test_backend.py tests/test_render.py \
-  tests/test_gradients.py tests/test_jax_tracer.py 2>&1 | tee $OUT/tests_gpu.txt | tail -40
+  tests/test_gradients.py tests/test_jax_tracer.py tests/test_render_functions.py 2>&1 | tee $OUT/tests_gpu.txt | tail -40
 echo "== bench_render"
-timeout 100 python3 scripts/bench_render.py --renderers mitsuba,jax --repeats 10 --wide 20,256,4096 > $OUT/bench_render_h200.json 2> $OUT/bench_render.err; tail -3 $OUT/bench_render.err
+timeout 100 python3 scripts/bench_render.py --renderers mitsuba,jax --repeats 10 --wide 20,256,4096 --callbacks 128,512,4096 > $OUT/bench_render_h200.json 2> $OUT/bench_render.err; tail -3 $OUT/bench_render.err
 echo "== bench_posterior (Mitsuba cuda_ad_rgb, 6 images)"
 timeout 170 python3 scripts/bench_posterior.py .devdata/model .devdata/images/0[0-5].png --renderer mitsuba --particles 64,256 \
   --truth .devdata/images/truth.json > $OUT/bench_posterior_h200_mitsuba.json 2> $OUT/bench_posterior.err; tail -5 $OUT/bench_posterior.err
