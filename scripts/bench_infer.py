@@ -25,7 +25,7 @@ run resumes), then prints JSON, the settings side by side:
   image the largest spread (max - min across seeds) over hypotheses, median over images;
   ``log_evidence_spread_leading_hypothesis`` the same for the hypothesis that leads (the one the
   posterior is made of); ``modal_shape_same_across_seeds`` the share of images whose modal shape
-  every seed agrees on.
+  every seed agrees on; ``by_seed`` each seed's shape and material accuracy and shape ECE.
 
 Settings: ``smc-fields`` is the default of ``infer`` (tempered SMC over the shape classes under the
 shading fields' form, ``--noise fields``); ``smc-fields-one-round`` the same with one round of runs (the
@@ -220,6 +220,10 @@ def main() -> None:
                                              if k.startswith("island_gap")}
             entry["log_evidence_spread_leading_hypothesis"] = _leading_evidence_spread(runs)
             entry["modal_shape_same_across_seeds"] = _modal_shape_agreement(runs)
+            # each seed's own attribute recovery: how much the answer depends on the seed
+            by_seed = [recovered] + [attribute_recovery(dataset, run, rules, misfits)[1] for run in runs[1:]]
+            entry["by_seed"] = {key: [round(r[key], 4) for r in by_seed]
+                                for key in ("shape_accuracy", "material_accuracy", "shape_ece")}
         report["settings"][name] = entry
         print(json.dumps({name: entry}), flush=True)
     print(json.dumps(report, indent=1))
