@@ -18,7 +18,7 @@ needs_buffer_callback = pytest.mark.skipif(not in_place_available(), reason="thi
 
 def test_render_into_writes_the_render_and_the_object_pixels_in_place(scene):
     """render_into fills the caller's arrays (no array returned) with render's and render_bases' values,
-    on the whole image and on a window, and refuses an output of the wrong size."""
+    on the whole image and on a window, and refuses an output of the wrong size or type."""
     renderer = make_renderer(scene, height=H, width=W, shadows=True)
     params = random_object_params(np.random.default_rng(0), 3)
     for view in (renderer, renderer.window(*OFFSET, *WINDOW)):
@@ -33,6 +33,8 @@ def test_render_into_writes_the_render_and_the_object_pixels_in_place(scene):
             assert 0 < covered.sum() < covered.size
     with pytest.raises(ValueError, match="expected"):
         renderer.render_into(params, np.zeros((2, H, W, 3), np.float32))
+    with pytest.raises(ValueError, match="float32"):       # a float64 array would be copied, not written
+        renderer.render_into(params, np.zeros((3, H, W, 3), np.float64))
 
 
 @needs_buffer_callback

@@ -251,6 +251,11 @@ class MitsubaRenderer(Renderer):
         :meth:`render_bases`; no image passes through the host."""
         p = self._to_drjit_cached(self.merged(params))
         pixels = p.batch * self.height * self.width
+        outputs = [(image, 12 if bases else 3)] + ([(covered, 1)] if covered is not None else [])
+        for output, per_pixel in outputs:     # checked before rendering; another dtype would be copied, not mapped
+            if np.dtype(getattr(output, "dtype", None)) != np.float32 or np.prod(output.shape) != pixels * per_pixel:
+                raise ValueError(f"render_into: an output of {getattr(output, 'dtype', None)} {tuple(output.shape)}, "
+                                 f"expected float32 with {pixels} pixels x {per_pixel}")
         check_memory(pixels, self.memory_limit, "bases" if bases else "image")
         dr.detail.new_scope(_BACKEND)  # see render_drjit
         self._set_pattern(p)
@@ -263,9 +268,6 @@ class MitsubaRenderer(Renderer):
         # then per output one small kernel that interleaves its channels into it, pixel-major
         dr.eval(*(value for _, values in targets for value in values))
         for target, values in targets:
-            if dr.width(target) != pixels * len(values):
-                raise ValueError(f"render_into: an output of {dr.width(target)} values, expected "
-                                 f"{pixels} pixels x {len(values)}")
             slot = dr.arange(mi.UInt32, pixels * len(values))
             pixel, channel = slot // len(values), slot % len(values)
             value = dr.zeros(mi.Float, dr.width(slot))
