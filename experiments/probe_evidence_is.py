@@ -45,7 +45,7 @@ from mitsuba_p3.infer.evidence import pooled_evidence
 from mitsuba_p3.infer.posterior import PosteriorModel, default_likelihood
 from mitsuba_p3.infer.smc import outside_window
 from mitsuba_p3.infer.smc_config import SMCConfig
-from mitsuba_p3.infer.smc_moves import kernels as make_kernels
+from mitsuba_p3.infer.smc_moves import kernels_for
 from mitsuba_p3.infer.symmetry import chart_centres, folded, quarter_turn
 from mitsuba_p3.infer.hypotheses import hypotheses_of
 from mitsuba_p3.shapes import SHAPES
@@ -129,7 +129,7 @@ def main() -> None:
         core = model.core
         observation = core.observe(image, window, outside_window(config)) if window else model.observation
         space = hypotheses_of(core.prior, config.kinds)
-        kern = make_kernels(core, config.kinds, config.ridge, config.symmetry, config.chart, config.jump)
+        kern = kernels_for(core, config)
         leader = index[np.argmax(smc)]
         mine = np.flatnonzero(index == leader)
         check, _ = kern.score(z, np.asarray(index, np.int32), observation)

@@ -23,7 +23,7 @@ from typing import Callable
 import numpy as np
 
 from . import tempering
-from .smc_moves import kernels as make_kernels
+from .smc_moves import kernels_for
 from .smc_moves import mover
 
 
@@ -39,7 +39,7 @@ def bridge(core, observation, start, config, key, progress: Callable[[str, int, 
         from ..errors import MitsubaP3Error
 
         raise MitsubaP3Error("the bridge tempers the neural term in: it needs the np3 likelihood's core")
-    kernels = make_kernels(core, config.kinds, config.ridge, config.symmetry, config.chart, config.jump)
+    kernels = kernels_for(core, config)
     index = jnp.asarray(start.index, jnp.int32)
     weight = np.float32(core.config.neural_weight)
     weighted = lambda w: {**observation, "neural_weight": np.float32(w)}  # noqa: E731

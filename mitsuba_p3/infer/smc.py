@@ -88,7 +88,7 @@ from .hypotheses import Hypotheses, footprint_start, hypotheses_of, initial_part
 from .importance import importance_evidence
 from .smc_config import DEFAULTS_BEFORE, SMCConfig  # noqa: F401 (re-exported)
 from .smc_moves import mover
-from .smc_moves import kernels as make_kernels
+from .smc_moves import kernels_for
 from .window import OUTSIDE_WINDOW
 
 
@@ -143,7 +143,7 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
     import jax
     import jax.numpy as jnp
 
-    kernels = make_kernels(core, config.kinds, config.ridge, config.symmetry, config.chart, config.jump)
+    kernels = kernels_for(core, config)
     space = hypotheses_of(core.prior, config.kinds)
     rows = Hypotheses(tuple(space.names[i] for i in index), *(a[index] for a in space[1:]))
     index_j = jnp.asarray(index, jnp.int32)
@@ -169,7 +169,7 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
     # a coarse wide start (:mod:`mitsuba_p3.infer.coarse`): its steps score and move at 1 / coarse of the resolution
     coarse = coarse_view(core, observation, image, config.coarse) if width > 1 and config.coarse > 1 else None
     if coarse:
-        start_kernels = make_kernels(coarse[0], config.kinds, config.ridge, config.symmetry, config.chart, config.jump)
+        start_kernels = kernels_for(coarse[0], config)
         start_observation = coarse[1]
         start_move = moves(start_kernels, start_observation)
     else:
@@ -222,7 +222,7 @@ def with_importance(core, observation, rows: Rows, config: SMCConfig, rng: np.ra
     (:mod:`mitsuba_p3.infer.importance`; ``config.importance`` draws per run; 0 leaves them as they are)."""
     if not config.importance:
         return rows
-    kernels = make_kernels(core, config.kinds, config.ridge, config.symmetry, config.chart, config.jump)
+    kernels = kernels_for(core, config)
     estimate = importance_evidence(kernels.score, rows.index, rows.state.position, rows.log_evidence, observation,
                                    rng, config.importance)
     return rows._replace(log_evidence=estimate.log_evidence, tempered=rows.log_evidence,

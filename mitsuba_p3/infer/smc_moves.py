@@ -281,6 +281,11 @@ def kernels(core, kinds: bool, ridge: int, symmetry: str | None = None, chart: b
     return _kernels(core, tuple(WALK_MASK.tolist()), kinds, ridge, symmetry, chart, jump)
 
 
+def kernels_for(core, config) -> Kernels:
+    """The kernels an SMC run under ``config`` (:class:`~mitsuba_p3.infer.smc.SMCConfig`) moves with."""
+    return kernels(core, config.kinds, config.ridge, config.symmetry, config.chart, config.jump)
+
+
 def covariance_factors(position: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Each row's Cholesky factor (R, d, d) of its particles' covariance over the dimensions of
     ``mask`` (zero elsewhere)."""

@@ -256,17 +256,10 @@ class MitsubaRenderer(Renderer):
             if np.dtype(getattr(output, "dtype", None)) != np.float32 or np.prod(output.shape) != pixels * per_pixel:
                 raise ValueError(f"render_into: an output of {getattr(output, 'dtype', None)} {tuple(output.shape)}, "
                                  f"expected float32 with {pixels} pixels x {per_pixel}")
-        check_memory(pixels, self.memory_limit, "bases" if bases else "image")
-        dr.detail.new_scope(_BACKEND)  # see render_drjit
-        self._set_pattern(p)
-        shaded, hit_object = self._shade(p, bases=bases, objects=True)
-        flat = [part[channel] for part in (shaded if bases else (shaded,)) for channel in range(3)]
-        targets = [(mi.TensorXf(image).array, flat)]
-        if covered is not None:
-            targets.append((mi.TensorXf(covered).array, [dr.select(hit_object, 1.0, 0.0)]))
         # the shading in one kernel (scattered from directly, Dr.Jit would trace it once per output),
         # then per output one small kernel that interleaves its channels into it, pixel-major
-        dr.eval(*(value for _, values in targets for value in values))
+        flat, hit = self._channels(p, bases, objects=covered is not None)
+        targets = [(mi.TensorXf(image).array, flat)] + ([(mi.TensorXf(covered).array, hit)] if hit else [])
         for target, values in targets:
             slot = dr.arange(mi.UInt32, pixels * len(values))
             pixel, channel = slot // len(values), slot % len(values)
@@ -281,17 +274,22 @@ class MitsubaRenderer(Renderer):
         """(B, H, W, 3) colours, or (B, H, W, 4, 3) bases, and with ``objects`` the (B, H, W) object
         pixels, evaluated in one launch (no AD)."""
         p = self._to_drjit_cached(merged)
+        flat, covered = self._channels(p, bases, objects)
+        shape = (p.batch, self.height, self.width)
+        out = np.stack([v.numpy() for v in flat], axis=-1).reshape(shape + ((4, 3) if bases else (3,)))
+        return (out,) + tuple(v.numpy().reshape(shape) > 0.5 for v in covered)
+
+    def _channels(self, p: DrParams, bases: bool, objects: bool) -> tuple[list, list]:
+        """The render of ``p``, evaluated in one launch (no AD): a flat array per channel (3 colours, or
+        the bases' 4 x 3) and, with ``objects``, [the object's pixels as 1.0 / 0.0] (else [])."""
         check_memory(p.batch * self.height * self.width, self.memory_limit, "bases" if bases else "image")
         dr.detail.new_scope(_BACKEND)  # see render_drjit
         self._set_pattern(p)
         shaded, hit_object = self._shade(p, bases=bases, objects=True)
-        parts = shaded if bases else (shaded,)
-        flat = [part[channel] for part in parts for channel in range(3)]
+        flat = [part[channel] for part in (shaded if bases else (shaded,)) for channel in range(3)]
         covered = [dr.select(hit_object, 1.0, 0.0)] if objects else []
         dr.eval(*flat, *covered)
-        shape = (p.batch, self.height, self.width)
-        out = np.stack([v.numpy() for v in flat], axis=-1).reshape(shape + ((4, 3) if bases else (3,)))
-        return (out,) + tuple(v.numpy().reshape(shape) > 0.5 for v in covered)
+        return flat, covered
 
     def vjp(self, params: Mapping[str, np.ndarray] | None, cotangent: np.ndarray) -> dict[str, np.ndarray]:
         """Gradients of ``sum(render(params) * cotangent)`` for every float parameter.
