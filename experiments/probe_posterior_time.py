@@ -14,7 +14,10 @@ likelihood (the shading fields' linear algebra, the moves' arithmetic) and the h
         data/fsclvr-lo/test/large-brown-rubber-sphere/0.png data/fsclvr-lo/test/large-brown-rubber-sphere/1.png
 
 ``--rounds 1`` samples with one round of runs (``SMCConfig.rounds``); run it with nothing else on
-the cores, or say what shared them. ``--profile`` also records a ``jax.profiler`` trace of the images
+the cores, or say what shared them. ``--threads 1`` runs as one of ``evaluate --jobs 2``'s workers does
+(one Dr.Jit thread, a single-threaded XLA): its seconds are then also counted as the process's CPU
+seconds, which another process on the cores does not inflate (it only delays them), so a probe can
+share the machine with an evaluation and still say where a worker's seconds go. ``--profile`` also records a ``jax.profiler`` trace of the images
 after the first and prints the XLA kernels and callbacks that took the most time in it, each by its
 own time (less what ran nested inside it): how the JAX side's seconds were found (docs/notebook.md,
 "The object's pixels from the render itself"). Match a kernel's name to its source with
@@ -27,6 +30,7 @@ import collections
 import gzip
 import json
 import os
+import resource
 import tempfile
 import time
 from pathlib import Path
@@ -41,9 +45,17 @@ from mitsuba_p3.infer.smc import SMCConfig
 from mitsuba_p3.render import mitsuba as mitsuba_renderer
 
 
+def cpu_seconds() -> float:
+    """CPU seconds this process has used, every thread's, user and system."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
 class RenderClock:
     """Seconds inside the Mitsuba renderer's ``render`` and ``render_bases`` (they run inside JAX's
-    host callbacks, on XLA's threads, where a Python profiler of the main thread does not see them)."""
+    host callbacks, on XLA's threads, where a Python profiler of the main thread does not see them),
+    in wall-clock time and in the process's CPU time (with one thread, XLA waits for its callbacks, so
+    the CPU spent meanwhile is the render's)."""
 
     def __enter__(self):
         self.reset()
@@ -59,15 +71,17 @@ class RenderClock:
 
     def reset(self):
         self.seconds, self.calls, self.scenes = {"render": 0.0, "bases": 0.0}, 0, 0
+        self.cpu = 0.0
         # by the renderer's resolution (the coarse wide start renders at 1 / SMCConfig.coarse of it):
         # (height, width) -> [seconds, scenes]
         self.by_size = collections.defaultdict(lambda: [0.0, 0])
 
     def _timed(self, name, method):
         def timed(renderer, params=None, **options):
-            begin = time.perf_counter()
+            begin, begin_cpu = time.perf_counter(), cpu_seconds()
             out = method(renderer, params, **options)
             seconds = time.perf_counter() - begin
+            self.cpu += cpu_seconds() - begin_cpu
             self.seconds[name] += seconds
             self.calls += 1
             theta = (params or {}).get("theta")      # (B,) for a batch of scenes, a scalar for one
@@ -112,10 +126,18 @@ def main() -> None:
     parser.add_argument("model", type=Path, help="a fitted-model folder (mitsuba-p3 fit)")
     parser.add_argument("images", type=Path, nargs="+", help="images at the model's resolution")
     parser.add_argument("--rounds", type=int, default=SMCConfig.rounds, help="SMC rounds of runs")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="render and XLA threads, as an evaluation worker's (default: one per core)")
     parser.add_argument("--profile", action="store_true",
                         help="trace the images after the first; print the kernels that took the most time")
     args = parser.parse_args()
-    if args.profile:   # XLA's per-kernel trace events, read when the backend starts (below, on first use)
+    # XLA reads its flags when the backend starts (below, on first use)
+    if args.threads:   # as evaluate's workers run (mitsuba_p3.evaluate.jobs)
+        from mitsuba_p3.evaluate.jobs import SINGLE_THREAD_XLA_FLAGS, _limit_threads
+        if args.threads == 1:
+            os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {SINGLE_THREAD_XLA_FLAGS}".strip()
+        _limit_threads(args.threads)
+    if args.profile:   # XLA's per-kernel trace events
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_enable_xprof_traceme=true").strip()
     import jax
 
@@ -126,18 +148,20 @@ def main() -> None:
     with RenderClock() as clock:
         for number, path in enumerate(args.images):
             clock.reset()
-            begin = time.perf_counter()
+            begin, begin_cpu = time.perf_counter(), cpu_seconds()
             if args.profile and number > 0:
                 with jax.profiler.trace(str(traces / str(number)), create_perfetto_trace=True):
                     infer_image(fitted, read_png(path), likelihood, config)
             else:
                 infer_image(fitted, read_png(path), likelihood, config)
-            total = time.perf_counter() - begin
+            total, total_cpu = time.perf_counter() - begin, cpu_seconds() - begin_cpu
             rendered = clock.seconds["render"] + clock.seconds["bases"]
             print(f"{path}: {total:.1f} s{' (with compilation)' if number == 0 else ''}; Mitsuba renders "
                   f"{rendered:.1f} s ({clock.seconds['render']:.1f} colour, {clock.seconds['bases']:.1f} bases; "
                   f"{100 * rendered / total:.0f}%), {clock.calls} callbacks, {clock.scenes} scenes "
                   f"({1e3 * rendered / max(clock.scenes, 1):.2f} ms per scene)", flush=True)
+            print(f"    CPU {total_cpu:.1f} s, of it in Mitsuba's renders {clock.cpu:.1f} s "
+                  f"({100 * clock.cpu / max(total_cpu, 1e-9):.0f}%)", flush=True)
             for (height, width), (seconds, scenes) in sorted(clock.by_size.items()):
                 print(f"    renderer {height}x{width}: {seconds:.1f} s, {scenes} scenes "
                       f"({1e3 * seconds / max(scenes, 1):.2f} ms per scene)", flush=True)

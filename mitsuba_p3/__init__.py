@@ -21,6 +21,44 @@ def _jax_compilation_cache() -> str | None:
     return _os.path.expanduser(chosen or default)
 
 
-# read by JAX when it is first imported (every module imports it lazily, after this)
+# The XLA flag that keeps XLA's CPU backend from handing fusions to YNNPACK (jaxlib 0.8.1 and later).
+NO_YNNPACK = "--xla_cpu_experimental_ynn_fusion_type="
+
+
+def _xla_flags(flags: str, jaxlib_version: str | None) -> str:
+    """``XLA_FLAGS`` for this process: ``flags`` with :data:`NO_YNNPACK` added where jaxlib knows it.
+
+    From jaxlib 0.8.1 on, XLA's CPU backend hands small fused element-wise ops, reductions and dots
+    to YNNPACK. A posterior's are small (a 3 x 3 block or three colours per particle, over the SMC's
+    particles) and take less time in XLA's own loops: the same arithmetic up to float32 rounding
+    (docs/notebook.md, "XLA's YNNPACK fusions and a posterior's seconds"). Flags that already name
+    the YNNPACK fusions are left as they are, and ``MITSUBA_P3_YNNPACK=on`` leaves XLA's default.
+    An older jaxlib has no such flag, and XLA stops a process on a flag it does not know, so none is
+    added there."""
+    import re
+
+    if "ynn_fusion_type" in flags or _os.environ.get("MITSUBA_P3_YNNPACK", "").strip().lower() in ("on", "1", "true"):
+        return flags
+    parts = re.findall(r"\d+", jaxlib_version or "")[:3]
+    if len(parts) < 3:
+        return flags
+    version = tuple(int(part) for part in parts)
+    return f"{flags} {NO_YNNPACK}".strip() if version >= (0, 8, 1) else flags
+
+
+def _jaxlib_version() -> str | None:
+    from importlib import metadata
+
+    try:
+        return metadata.version("jaxlib")
+    except metadata.PackageNotFoundError:
+        return None
+
+
+# read by JAX when it is first imported (every module imports it lazily, after this) and by XLA when
+# its backend starts: a process that ran JAX before importing this package keeps XLA's settings
 if _jax_compilation_cache() is not None:
     _os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", _jax_compilation_cache())
+_flags = _xla_flags(_os.environ.get("XLA_FLAGS", ""), _jaxlib_version())
+if _flags:
+    _os.environ["XLA_FLAGS"] = _flags

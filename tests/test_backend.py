@@ -148,3 +148,52 @@ def test_jax_compiles_once_per_machine_into_a_cache_one_can_move_or_turn_off(tmp
     env["JAX_COMPILATION_CACHE_DIR"] = str(tmp_path / "mine")
     out = subprocess.run([sys.executable, "-c", show], env=env, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == str(tmp_path / "mine")
+
+
+def test_xla_flags_leave_ynnpack_out_only_where_jaxlib_knows_the_flag(monkeypatch):
+    """The package keeps XLA's CPU backend from handing fusions to YNNPACK where jaxlib has the flag
+    (0.8.1 on: XLA stops a process on a flag it does not know), keeps every flag the user set, and
+    leaves flags that name the YNNPACK fusions, or MITSUBA_P3_YNNPACK=on, as they are."""
+    import mitsuba_p3
+
+    monkeypatch.delenv("MITSUBA_P3_YNNPACK", raising=False)
+    off = mitsuba_p3.NO_YNNPACK
+    assert mitsuba_p3._xla_flags("", "0.10.2") == off
+    assert mitsuba_p3._xla_flags("--xla_dump_to=d", "0.8.1") == f"--xla_dump_to=d {off}"
+    for old in ("0.8.0", "0.4.30", None, "dev"):
+        assert mitsuba_p3._xla_flags("--xla_dump_to=d", old) == "--xla_dump_to=d"
+    mine = "--xla_cpu_experimental_ynn_fusion_type=individual_dot"
+    assert mitsuba_p3._xla_flags(mine, "0.10.2") == mine
+    monkeypatch.setenv("MITSUBA_P3_YNNPACK", "on")
+    assert mitsuba_p3._xla_flags("", "0.10.2") == ""
+
+
+def test_an_evaluation_worker_adds_its_single_thread_to_the_packages_xla_flags(monkeypatch):
+    """A worker's single-threaded XLA goes beside the flags already set (the package's own among them);
+    thread flags a user set are kept."""
+    from mitsuba_p3.evaluate import jobs
+
+    monkeypatch.setattr(os, "environ", {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"})
+    os.environ["XLA_FLAGS"] = "--xla_dump_to=d"
+    jobs._limit_threads(1, "jax")
+    assert os.environ["XLA_FLAGS"] == f"--xla_dump_to=d {jobs.SINGLE_THREAD_XLA_FLAGS}"
+    os.environ["XLA_FLAGS"] = "--xla_cpu_multi_thread_eigen=true"
+    jobs._limit_threads(1, "jax")
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_multi_thread_eigen=true"
+
+
+def test_jax_runs_under_the_packages_xla_flags():
+    """A process that imports the package first starts XLA with its flags (XLA stops a process on a flag
+    its jaxlib does not know, so this fails if a jaxlib drops the flag the package adds)."""
+    import mitsuba_p3
+
+    show = ("import os, mitsuba_p3, jax.numpy as jnp; "
+            "print(float(jnp.einsum('pij,pik->pjk', jnp.ones((8, 3, 3)), jnp.ones((8, 3, 3))).sum())); "
+            "print(os.environ.get('XLA_FLAGS', ''))")
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "MITSUBA_P3_YNNPACK")}
+    out = subprocess.run([sys.executable, "-c", show], env={**env, "JAX_PLATFORMS": "cpu"},
+                         capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    value, flags = out.stdout.splitlines()
+    assert float(value) == 8 * 27
+    assert flags == mitsuba_p3._xla_flags("", mitsuba_p3._jaxlib_version())

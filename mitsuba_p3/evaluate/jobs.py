@@ -57,8 +57,9 @@ def _limit_threads(threads: int, renderer: str = "mitsuba") -> None:
     its memory as they need it rather than XLA's default three quarters of the device at start, which
     no two workers can both take. Under the JAX tracer Dr.Jit renders nothing and is left alone: such an
     evaluation runs where Mitsuba is not installed."""
-    if threads == 1:
-        os.environ.setdefault("XLA_FLAGS", SINGLE_THREAD_XLA_FLAGS)
+    flags = os.environ.get("XLA_FLAGS", "")
+    if threads == 1 and "multi_thread_eigen" not in flags:     # a user's own thread flags rule
+        os.environ["XLA_FLAGS"] = f"{flags} {SINGLE_THREAD_XLA_FLAGS}".strip()
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     if renderer != "mitsuba":
         return
