@@ -180,6 +180,7 @@ def describe() -> dict:
         "cpu_cores": os.cpu_count(),
         "cpu": platform.processor() or platform.machine(),
         "jax_compilation_cache": os.environ.get("JAX_COMPILATION_CACHE_DIR"),
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),     # the package's own among them (mitsuba_p3.NO_YNNPACK)
     }
     out.update(gpu())
     return out

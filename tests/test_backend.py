@@ -81,7 +81,8 @@ def test_a_forced_variant_is_checked(monkeypatch):
 
 
 def test_cli_variant_option_and_doctor(tmp_path):
-    """`--variant` reaches the backend before Mitsuba loads; doctor says which variant and why."""
+    """`--variant` reaches the backend before Mitsuba loads; doctor says which variant and why, and the
+    XLA flags the process runs with."""
     env = {k: v for k, v in os.environ.items() if k != backend.VARIANT_ENV}
     done = subprocess.run([sys.executable, "-m", "mitsuba_p3.cli", "--variant", "llvm_ad_rgb", "doctor"], env=env,
                           capture_output=True, text=True, timeout=120)
@@ -91,6 +92,9 @@ def test_cli_variant_option_and_doctor(tmp_path):
     report = json.loads(done.stdout)
     assert report["variant"] == "llvm_ad_rgb" and "forced" in report["variant_why"]
     assert report["cpu_cores"] >= 1 and "jax_backend" in report
+    import mitsuba_p3
+
+    assert report["xla_flags"] == mitsuba_p3._xla_flags(env.get("XLA_FLAGS", ""), mitsuba_p3._jaxlib_version())
     bad = subprocess.run([sys.executable, "-m", "mitsuba_p3.cli", "--variant", "scalar_rgb", "doctor"], env=env,
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "--variant must be one of" in bad.stderr
