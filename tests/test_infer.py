@@ -1296,6 +1296,56 @@ def test_sbc_runs_on_the_phong_model_and_resumes(fitted, tmp_path):
         run_sbc(PosteriorCore(fitted, LikelihoodConfig("p3", sigma=0.03, power=0.1), "mitsuba", *RES), sample, 1, 9)
 
 
+def test_sbc_keeps_its_cache_without_gaps_when_simulations_finish_out_of_order(tmp_path):
+    """Simulations run in workers finish in any order: the cache keeps those done without a gap (a run
+    killed with simulation 2 finished and 1 not resumes from 1, and runs 2 again), and the result is in
+    simulation order."""
+    from types import SimpleNamespace
+
+    from mitsuba_p3.evaluate.sbc import run_sbc
+
+    core = SimpleNamespace(config=SimpleNamespace(power=1.0, outlier=0.0))
+
+    def result(i):
+        return i, np.full(8, i), np.array([0.5, 0.25, 0.25]), i % 3
+
+    def killed(todo):
+        assert list(todo) == [0, 1, 2]
+        yield result(2)
+        yield result(0)
+        raise KeyboardInterrupt
+
+    cache = tmp_path / "cache.npz"
+    with pytest.raises(KeyboardInterrupt):
+        run_sbc(core, None, 3, 9, cache=cache, simulations=killed)
+    with np.load(cache) as kept:
+        assert kept["ranks"].tolist() == [[0] * 8]
+    asked = []
+
+    def resumed(todo):
+        asked.extend(todo)
+        return (result(i) for i in reversed(todo))
+
+    done = run_sbc(core, None, 3, 9, cache=cache, simulations=resumed)
+    assert asked == [1, 2] and done.ranks[:, 0].tolist() == [0, 1, 2] and done.true_class.tolist() == [0, 1, 2]
+
+
+@pytest.mark.slow
+def test_sbc_in_two_workers(fitted, tmp_path):
+    """``sbc --jobs 2``: the simulations run in two worker processes, each with one thread, and come back
+    into one report."""
+    from mitsuba_p3.evaluate.sbc import calibrate_model
+    from mitsuba_p3.infer.smc import SMCConfig
+
+    config = SMCConfig(particles=4, oversample=2, mcmc_steps=1, final_steps=0, draws=16, islands=1, wide_steps=0,
+                       rounds=1, importance=0)
+    summary = calibrate_model(fitted.root, tmp_path / "sbc", images=3, draws=9, resolution=RES, noise="fitted",
+                              config=config, jobs=2)
+    with np.load(tmp_path / "sbc" / "cache.npz") as cache:
+        assert cache["ranks"].shape == (3, 8) and 0 <= cache["ranks"].min() and cache["ranks"].max() <= 9
+    assert summary["class"]["accuracy"] >= 0 and (tmp_path / "sbc" / "sbc.png").exists()
+
+
 def test_sbc_of_the_shading_fields_simulates_fields_on_the_window_the_sampler_scores(fitted, tmp_path):
     """SBC under ``--noise fields`` checks the sampler on the fields' own model: power 1 with sigma divided by
     sqrt(power) and the taus as fitted (the likelihood's own form); the simulated image is the white-noise one plus fields on the true

@@ -208,6 +208,7 @@ def sbc(
                                                   "form)."),
     settings: Optional[List[str]] = typer.Option(None, "--set", help=SET_HELP),
     config_file: Optional[Path] = typer.Option(None, "--config", help=CONFIG_HELP),
+    jobs: int = typer.Option(1, help="Parallel simulation workers (processes that live for the whole run)."),
 ) -> None:
     """Simulation-based calibration of the SMC sampler (the default, or as --set makes it) on a model's own
     renders: do its posteriors' ranks of the truth come out uniform (position, size, colour), and is its
@@ -218,8 +219,9 @@ def sbc(
 
     if noise not in ("fitted", "sandwich", "fields"):
         raise ConfigError(f"--noise must be fitted, sandwich or fields, got {noise!r}")
-    if images < 2 or draws < 1:
-        raise ConfigError(f"--images must be at least 2 and --draws at least 1; got {images} and {draws}")
+    if images < 2 or draws < 1 or jobs < 1:
+        raise ConfigError(f"--images must be at least 2, --draws and --jobs at least 1; got {images}, {draws} "
+                          f"and {jobs}")
     height, width = parse_resolution(resolution)
     config = apply_settings(SMCConfig(particles=SMCConfig.particles if particles is None else particles), settings,
                             config_file)
@@ -228,7 +230,7 @@ def sbc(
         bar, update = progress_bar("simulations")
         with bar:
             summary = calibrate_model(model, out, images, draws, (height, width), seed, noise,
-                                      progress=update, config=config)
+                                      progress=update, config=config, jobs=jobs)
     shown = {k: v for k, v in summary.items() if k != "rank_counts"}
     shown["class"] = {k: v for k, v in summary["class"].items() if k != "reliability"}
     typer.echo(json.dumps(shown, indent=2))

@@ -212,7 +212,7 @@ def simulate_and_rank(core, sample, seed: int, i: int, draws: int, window: tuple
 
 
 def run_sbc(core, sample, images: int, draws: int, seed: int = 0, cache=None, progress=None,
-            tag: str = "{}", window: tuple[int, int] | None = None) -> SBCResult:
+            tag: str = "{}", window: tuple[int, int] | None = None, simulations=None) -> SBCResult:
     """SBC of ``sample(observation, seed) -> (positions (L', 15), class probabilities)`` on ``images``
     simulations; ``core`` is a :class:`~mitsuba_p3.infer.model.PosteriorCore` whose likelihood has power 1
     (the model the images come from). Each image's ranks use ``draws`` of its posterior draws.
@@ -220,7 +220,9 @@ def run_sbc(core, sample, images: int, draws: int, seed: int = 0, cache=None, pr
     Image i is simulated and sampled with seeds derived from (``seed``, i), so a run killed and started
     again with the same ``cache`` (an .npz path, rewritten atomically after every image) resumes where
     it stopped and gives the same result. ``tag`` names the sampler's settings; a cache made under other
-    settings is refused rather than continued."""
+    settings is refused rather than continued. ``simulations``: the indices to run -> (i, ranks, class
+    probabilities, class) in any order (:func:`simulations_in_workers`), instead of one after another
+    here; the cache keeps the simulations done without a gap, so a resumed run starts after them."""
     from ..errors import ConfigError
     from ..files import atomic_npz
 
@@ -235,17 +237,58 @@ def run_sbc(core, sample, images: int, draws: int, seed: int = 0, cache=None, pr
                                   "choose another output folder")
             if int(f["draws"]) == draws and int(f["seed"]) == seed:
                 done = {k: list(f[k]) for k in done}
-    for i in range(len(done["ranks"]), images):
-        ranks, class_probabilities, cls = simulate_and_rank(core, sample, seed, i, draws, window)
-        done["ranks"].append(ranks)
-        done["probabilities"].append(np.asarray(class_probabilities, np.float64))
-        done["truths"].append(cls)
-        if cache is not None:
-            atomic_npz(cache, draws=draws, seed=seed, tag=tag, **{k: np.array(v) for k, v in done.items()})
+    todo = range(len(done["ranks"]), images)
+    finished = simulations(todo) if simulations is not None else \
+        ((i, *simulate_and_rank(core, sample, seed, i, draws, window)) for i in todo)
+    waiting = {}                        # finished after a simulation that is not yet: kept until it is
+    for i, ranks, class_probabilities, cls in finished:
+        waiting[i] = ranks, class_probabilities, cls
+        while len(done["ranks"]) in waiting:
+            ranks, class_probabilities, cls = waiting.pop(len(done["ranks"]))
+            done["ranks"].append(ranks)
+            done["probabilities"].append(np.asarray(class_probabilities, np.float64))
+            done["truths"].append(cls)
+            if cache is not None:
+                atomic_npz(cache, draws=draws, seed=seed, tag=tag, **{k: np.array(v) for k, v in done.items()})
         if progress:
-            progress(i + 1, images)
+            progress(len(done["ranks"]) + len(waiting), images)
     return SBCResult(np.array(done["ranks"][:images]), draws, np.array(done["probabilities"][:images]),
                      np.array(done["truths"][:images]))
+
+
+_WORKER_CORES: dict = {}
+
+
+def simulation_job(model_dir: str, resolution: tuple[int, int], noise: str, config, seed: int, i: int, draws: int,
+                   threads: int | None = None) -> tuple:
+    """Simulation ``i`` in a worker process (a picklable job): (i, ranks, class probabilities, class). The
+    worker keeps its core, and so the sampler compiled for it, for the simulations after its first."""
+    if threads:
+        from .jobs import _exit_with_parent, _limit_threads
+
+        _exit_with_parent()
+        _limit_threads(threads)
+    key = (model_dir, tuple(resolution), noise)
+    if key not in _WORKER_CORES:
+        _WORKER_CORES[key] = model_core(model_dir, "mitsuba", tuple(resolution), noise)
+    core = _WORKER_CORES[key]
+    return (i, *simulate_and_rank(core, smc_sampler(core, config), seed, i, draws, config.window))
+
+
+def simulations_in_workers(model_dir, resolution: tuple[int, int], noise: str, config, seed: int, draws: int,
+                           jobs: int):
+    """``run_sbc``'s ``simulations`` in ``jobs`` worker processes that live for the whole run, each with its
+    share of the cores (one Dr.Jit thread and a single-threaded XLA on 2 cores and 2 jobs, as
+    ``evaluate --jobs`` runs; :func:`~mitsuba_p3.evaluate.jobs.worker_threads`)."""
+    from .jobs import in_workers, worker_threads
+
+    threads = worker_threads(jobs)
+
+    def simulations(todo):
+        calls = [(str(model_dir), tuple(resolution), noise, config, seed, i, draws, threads) for i in todo]
+        return in_workers(simulation_job, calls, jobs)
+
+    return simulations
 
 
 def smc_sampler(core, config):
@@ -306,13 +349,14 @@ def settings_tag(config) -> str:
 
 
 def calibrate_model(model_dir, out, images: int = 200, draws: int = 99, resolution: tuple[int, int] = (120, 160),
-                    seed: int = 0, noise: str = "fitted", progress=None, config=None) -> dict:
+                    seed: int = 0, noise: str = "fitted", progress=None, config=None, jobs: int = 1) -> dict:
     """SBC of the default sampler (tempered SMC) on a fitted model's own renders: ``images`` simulations
     from its prior, each rendered with its observation model plus the likelihood's noise at the effective
     sigma / sqrt(power) that inference uses (``noise``: the power 1 / correlation area, ``fitted``, the
     sandwich power along the pose, ``sandwich``, or the shading fields' form, ``fields``); ``config``: the
     :class:`~mitsuba_p3.infer.smc.SMCConfig` (default: the default). Writes ``out/sbc.json``, ``sbc.png``,
-    ``calibration.png`` and ``cache.npz``, from which a killed run resumes; returns the summary."""
+    ``calibration.png`` and ``cache.npz``, from which a killed run resumes; returns the summary. ``jobs`` > 1
+    runs the simulations in that many worker processes (:func:`simulations_in_workers`)."""
     from pathlib import Path
 
     from ..files import atomic_json
@@ -330,8 +374,9 @@ def calibrate_model(model_dir, out, images: int = 200, draws: int = 99, resoluti
         # the fields' form records where its power acts (a cache of the earlier form has no such entry)
         form = {"noise": noise, **({"fields_power_on": POWER_ON} if noise == "fields" else {})}
         tag = json.dumps({**form, **json.loads(tag)}, sort_keys=True)
+    simulations = simulations_in_workers(model_dir, resolution, noise, config, seed, draws, jobs) if jobs > 1 else None
     result = run_sbc(core, smc_sampler(core, config), images, draws, seed, cache=out / "cache.npz", progress=progress,
-                     tag=tag, window=config.window)
+                     tag=tag, window=config.window, simulations=simulations)
     summary = {"model": str(model_dir), "noise": noise, "likelihood_sigma": core.config.sigma,
                "smc": dataclasses.asdict(config), **result.summary()}
     atomic_json(out / "sbc.json", summary)
