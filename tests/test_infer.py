@@ -396,8 +396,8 @@ def test_walk_moves_in_a_symmetry_chart(fitted, observed):
         counts, and 20,000 particles walk without a render."""
         prior = core.prior
 
-        def log_likelihood(self, z, observation):
-            return 0.0 * z[0]
+        def log_likelihoods(self, z, observation):
+            return 0.0 * z[:, 0]
 
     k = kernels(PriorOnly(), False, 0, "rendered")
     start = core.prior.sample(np.random.default_rng(7), 20_000).astype(np.float32).reshape(2, 10_000, -1)
@@ -664,6 +664,76 @@ def test_a_windowed_likelihood_scores_the_window_around_the_object(fitted, rende
     assert core.window_for(image, (12, 12)) is None
 
 
+def test_map_in_chunks_is_vmap_over_any_batch(monkeypatch):
+    """``map_in_chunks`` gives ``vmap``'s values for a batch that is not a multiple of its chunk, with a
+    pytree (a None leaf included) in and out; on a GPU's rule (``MITSUBA_P3_JAX_BATCHING=vmap``) it is
+    ``vmap`` itself."""
+    import jax
+    import jax.numpy as jnp
+
+    from mitsuba_p3.infer import chunks
+
+    assert chunks.chunk_size(56 * 72) == 16 and chunks.chunk_size(10 ** 9) == 1
+    x = jnp.arange(10 * 6, dtype=jnp.float32).reshape(10, 2, 3)
+    y = jnp.linspace(0.0, 1.0, 10)
+
+    def fn(a, b, nothing):
+        assert nothing is None
+        return {"sum": jnp.sum(a * b), "max": jnp.max(a, axis=0)}
+
+    expected = jax.vmap(fn)(x, y, None)
+    for batching in ("", "vmap"):
+        monkeypatch.setenv("MITSUBA_P3_JAX_BATCHING", batching)
+        got = jax.jit(lambda a, b: chunks.map_in_chunks(fn, (a, b, None), chunks.CHUNK_PIXELS // 3))(x, y)
+        np.testing.assert_allclose(got["sum"], expected["sum"], rtol=1e-6)
+        np.testing.assert_array_equal(got["max"], expected["max"])
+
+
+def test_scores_in_chunks_are_each_particles_own_score(fitted, monkeypatch):
+    """The sampler's batched likelihood (:meth:`PosteriorCore.log_likelihoods`: one batched render, the
+    scores in chunks) is each particle's :meth:`PosteriorCore.log_likelihood` under the shading fields, in
+    a window, for a batch of three chunks and a remainder; the whole-batch rule gives the same values;
+    and a material move whose bases were rendered beforehand (``rendered``, as the batched sampler
+    renders them) is the move that renders its own."""
+    import jax
+    import jax.numpy as jnp
+    from blackjax.mcmc.random_walk import RWState
+
+    from mitsuba_p3.infer import chunks
+    from mitsuba_p3.infer.model import PosteriorCore
+    from mitsuba_p3.infer.posterior import default_likelihood
+
+    core = PosteriorCore(fitted, default_likelihood(fitted, "p3", noise="fields"), "mitsuba", 120, 160)
+    image = make_renderer_image(fitted)
+    observation = core.observe(image, core.window_for(image, (48, 64)))
+    monkeypatch.setattr(chunks, "CHUNK_PIXELS", 4 * 48 * 64)                   # chunks of 4 renders
+    z = jnp.asarray(fitted.prior.sample(np.random.default_rng(2), 3 * 4 + 1), jnp.float32)
+    alone = np.array([float(jax.jit(core.log_likelihood)(p, observation)) for p in z])
+    assert np.isfinite(alone).all() and np.ptp(alone) > 1.0
+    for batching in ("", "vmap"):
+        monkeypatch.setenv("MITSUBA_P3_JAX_BATCHING", batching)
+        batched = np.asarray(jax.jit(core.log_likelihoods)(z, observation))
+        # float32 sums over thousands of pixels, in another order: equal to rounding (1e-5 of thousands of nats)
+        np.testing.assert_allclose(batched, alone, rtol=5e-5, atol=0.05)
+        colour, whole = jax.jit(lambda p, o: core.log_likelihoods(p, o, parts=True))(z, observation)
+        np.testing.assert_allclose(np.asarray(colour), alone, rtol=5e-5, atol=0.05)
+        np.testing.assert_allclose(np.asarray(whole), alone, rtol=5e-5, atol=0.05)
+
+    key = jax.random.PRNGKey(3)
+    state = RWState(z[0], fitted.prior.log_prob(z[0]) + 0.5 * alone[0])
+
+    @jax.jit
+    def move(key, state, observation, rendered):
+        return core.scored_material_move(key, state, observation, 0.5, jump=True, rendered=rendered)
+
+    rendered = jax.jit(lambda k, p, o: core.material_renders(k, p, o, jump=True))(key, z[0], observation)
+    assert rendered[2] is not None
+    own = move(key, state, observation, None)
+    given = move(key, state, observation, rendered)
+    for a, b in zip(jax.tree_util.tree_leaves(own), jax.tree_util.tree_leaves(given)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def test_the_shading_fields_likelihood_traces_the_object_it_scores(fitted):
     """Under ``--noise fields`` the core traces each hypothesis's object pixels in the scored window
     (the same pixels the Mitsuba render shades as object, for every class, and returns with its render
@@ -909,6 +979,11 @@ class _GaussianPoseCore:
         from mitsuba_p3.infer.smc_moves import POSE_MASK
 
         return -0.5 * (((z - self.centre) / self.width) ** 2 * POSE_MASK).sum()
+
+    def log_likelihoods(self, z, observation):
+        import jax
+
+        return jax.vmap(lambda p: self.log_likelihood(p, observation))(z)
 
 
 def test_gradient_move_keeps_the_tempered_target(fitted):

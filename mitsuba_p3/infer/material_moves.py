@@ -92,17 +92,32 @@ class MaterialMoves:
         state, accepted, _, _ = self.scored_material_move(key, state, observation, tempering, log_prior)
         return state, accepted
 
-    def scored_material_move(self, key, state, observation, tempering=1.0, log_prior=None, jump: bool = False):
+    def material_renders(self, key, position, observation, jump: bool = False) -> tuple:
+        """What :meth:`scored_material_move` renders, given the move's ``key``: the material bases of
+        ``position`` and the pixels its object covers, and with ``jump`` the bases of the kind's jump
+        proposal (:meth:`_jump_proposal`; else None). A batched sampler renders these for every
+        particle in one callback and moves the particles in chunks (``rendered``)."""
+        import jax
+
+        bases, objects = self._image(position, observation, bases=True)
+        if not jump:
+            return bases, objects, None
+        k_jump = jax.random.split(key, 3)[2]
+        return bases, objects, self._image(self._jump_proposal(k_jump, position), observation, bases=True)[0]
+
+    def scored_material_move(self, key, state, observation, tempering=1.0, log_prior=None, jump: bool = False,
+                             rendered: tuple | None = None):
         """:meth:`material_move`, also returning log p(I | z) of the new state, computed from the
         bases it rendered: a tempered sampler needs the likelihood apart from the prior, and this
         saves it a render per move. With ``jump``, the material kind's jump (:meth:`_kind_jump`, one
-        more render) comes first. Returns (state, colour and weights accepted, log likelihood, jump
-        accepted (False without ``jump``))."""
+        more render) comes first. ``rendered``: :meth:`material_renders` of the same key and position,
+        made beforehand (then this move renders nothing). Returns (state, colour and weights accepted,
+        log likelihood, jump accepted (False without ``jump``))."""
         import jax
         import jax.numpy as jnp
 
         k_colour, k_weights, k_jump = jax.random.split(key, 3)
-        bases, objects = self._image(state.position, observation, bases=True)
+        bases, objects, jump_bases = rendered or self.material_renders(key, state.position, observation, jump)
         gram = self._gram(bases, objects, observation, tempering, self.params(state.position)["colour"])
         # the material moves leave the pose, so the window's term (mitsuba_p3.infer.window) and the object's
         # pixels are the state's throughout
@@ -110,7 +125,7 @@ class MaterialMoves:
         target = (tempering, log_prior or self.prior.log_prob, term, objects)
         jumped = jnp.asarray(False)
         if jump:
-            state, jumped, bases, gram = self._kind_jump(k_jump, state, bases, gram, observation, target)
+            state, jumped, bases, gram = self._kind_jump(k_jump, state, bases, gram, observation, target, jump_bases)
         # (tinted fields load on the colour: the weights' conditional takes the Gram of the colour kept)
         state, colour_ok, gram = self._colour_move(k_colour, state, bases, gram, observation, target)
         state, weights_ok = self._weights_move(k_weights, state, bases, gram, observation, target)
@@ -175,7 +190,21 @@ class MaterialMoves:
         solved = small_linalg.solve(small_linalg.cholesky(inner, jnp), columns, jnp)        # (4, 3, R, K)
         return jnp.einsum("icrk,jdrk->cdij", columns, solved)
 
-    def _kind_jump(self, key, state, bases, gram, observation, target):
+    def _jump_proposal(self, key, position):
+        """The kind's jump's new shininess (:meth:`_kind_jump`): ``position`` with it drawn from its prior,
+        from the key :meth:`_kind_jump` is given."""
+        import jax
+        import jax.numpy as jnp
+
+        k_component, k_noise, _, _ = jax.random.split(key, 4)
+        g = self.prior.gmms["shininess"]
+        loc, std = float(g.mean[0]), float(g.std[0])
+        means, sds = jnp.asarray(g.means[:, 0]), jnp.sqrt(jnp.asarray(g.variances[:, 0]))
+        component = jax.random.categorical(k_component, jnp.log(jnp.asarray(g.weights)))
+        alpha = means[component] + sds[component] * jax.random.normal(k_noise)
+        return position.at[SLICES["shininess"].start].set((alpha - loc) / std)
+
+    def _kind_jump(self, key, state, bases, gram, observation, target, new_bases=None):
         """The material kind's jump: a new shininess drawn from its prior (a mixture of the fitted
         materials' components: broad highlights and tight ones), the weights (k_a, k_d, k_s) drawn from
         their conditional at the new shininess's bases (one render) given the colour, accepted with the
@@ -188,20 +217,18 @@ class MaterialMoves:
         import jax
         import jax.numpy as jnp
 
-        k_component, k_noise, k_weights, k_accept = jax.random.split(key, 4)
+        _, _, k_weights, k_accept = jax.random.split(key, 4)
         g = self.prior.gmms["shininess"]
         s = SLICES["shininess"].start
         loc, std = float(g.mean[0]), float(g.std[0])
-        means, sds = jnp.asarray(g.means[:, 0]), jnp.sqrt(jnp.asarray(g.variances[:, 0]))
-        component = jax.random.categorical(k_component, jnp.log(jnp.asarray(g.weights)))
-        alpha = means[component] + sds[component] * jax.random.normal(k_noise)
 
         def log_q_alpha(z_alpha):    # the prior's density in the natural unit (its Jacobian std cancels)
             return g.log_prob((loc + std * z_alpha)[None])
 
         position = state.position
-        moved = position.at[s].set((alpha - loc) / std)
-        new_bases, _ = self._image(moved, observation, bases=True)          # the same pose: the same objects
+        moved = self._jump_proposal(key, position)
+        if new_bases is None:                                                # the same pose: the same objects
+            new_bases, _ = self._image(moved, observation, bases=True)
         colour = self.params(position)["colour"]
         new_gram = self._gram(new_bases, target[3], observation, target[0], colour)
         dims, w_loc, w_std = self._weight_coordinates()

@@ -18,6 +18,7 @@ from ..fit.model import FittedModel
 from ..fit.priors import Prior
 from ..render import RENDERERS
 from ..space import DIMENSION, HYPOTHESES, SLICES, render_params
+from .chunks import map_in_chunks
 from .likelihood import LikelihoodConfig, observe, score
 from .material_moves import MaterialMoves
 from .mcmc import Target
@@ -185,6 +186,24 @@ class PosteriorCore(MaterialMoves):
     def image_log_likelihood(self, z, observation):
         """The score of z's render alone, without the window's term (the empty floor's evidence needs it)."""
         return self._score(*self._image(z, observation), observation, z)
+
+    def log_likelihoods(self, z, observation, parts: bool = False):
+        """:meth:`log_likelihood` of many positions z (B, 15) -> (B,), or with ``parts``
+        :meth:`log_likelihood_parts`'s (colour, whole) pair: the B renders in one batch (one
+        callback), their scores in chunks that stay in the CPU's cache (:mod:`~mitsuba_p3.infer.chunks`)."""
+        import jax
+
+        image, objects = jax.vmap(lambda p: self._image(p, observation))(z)
+        term = jax.vmap(lambda p: self.window_log_term(p, observation))(z)
+
+        def one(image, objects, p):
+            if parts:
+                return (self._score(image, objects, {**observation, "neural_weight": 0.0}, p),
+                        self._score(image, objects, observation, p))
+            return self._score(image, objects, observation, p)
+
+        scores = map_in_chunks(one, (image, objects, z), image.shape[-3] * image.shape[-2])
+        return tuple(s + term for s in scores) if parts else scores + term
 
     def log_likelihood_parts(self, z, observation):
         """(colour, whole) log likelihood of one position z from one render (JAX; vmap for many): the

@@ -30,6 +30,7 @@ import numpy as np
 
 from .. import small_linalg
 from ..space import DIMENSION, SLICES
+from .chunks import map_in_chunks
 from .hypotheses import hypotheses_of, hypothesis_log_prior
 from .symmetry import chart_centres, folded, quarter_turn, quarters
 from .tempering import TARGET_GRADIENT_ACCEPTANCE, TemperedState, adaptation
@@ -87,8 +88,7 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str, cha
     mask = jnp.asarray(walk_mask, jnp.float32)
 
     def loglik_all(z, observation):                               # (R, N, d) -> (R, N)
-        flat = z.reshape(-1, z.shape[-1])
-        return jax.vmap(lambda p: core.log_likelihood(p, observation))(flat).reshape(z.shape[:2])
+        return core.log_likelihoods(z.reshape(-1, z.shape[-1]), observation).reshape(z.shape[:2])
 
     def logprior_all(z, index):
         h = jnp.broadcast_to(index[:, None], z.shape[:2])
@@ -100,7 +100,7 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str, cha
 
     @jax.jit
     def parts(z, index, observation):
-        colour, whole = jax.vmap(lambda p: core.log_likelihood_parts(p, observation))(z.reshape(-1, z.shape[-1]))
+        colour, whole = core.log_likelihoods(z.reshape(-1, z.shape[-1]), observation, parts=True)
         return colour.reshape(z.shape[:2]), whole.reshape(z.shape[:2]), logprior_all(z, index)
 
     @jax.jit
@@ -173,15 +173,19 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str, cha
         h = jnp.repeat(index, z.shape[1])
         lam = jnp.repeat(tempering, z.shape[1])
 
-        def one(key, position, logprior_value, loglik_value, row_hypothesis, lam_value):
+        def one(key, position, logprior_value, loglik_value, row_hypothesis, lam_value, rendered):
             state = RWState(position, logprior_value + lam_value * loglik_value)
             new, accepted, new_loglik, jumped = core.scored_material_move(
-                key, state, observation, lam_value, lambda p: log_prior(p, row_hypothesis), jump)
+                key, state, observation, lam_value, lambda p: log_prior(p, row_hypothesis), jump, rendered)
             return new.position, new_loglik, accepted, jumped
 
         keys = jax.random.split(key, h.shape[0])
-        moved, new_loglik, accepted, jumped = jax.vmap(one)(keys, z.reshape(-1, z.shape[-1]), logprior.reshape(-1),
-                                                            loglik.reshape(-1), h, lam)
+        flat = z.reshape(-1, z.shape[-1])
+        # every particle's bases in one batched render, then the moves' arithmetic in chunks (chunks.py)
+        rendered = jax.vmap(lambda k, p: core.material_renders(k, p, observation, jump))(keys, flat)
+        moved, new_loglik, accepted, jumped = map_in_chunks(
+            one, (keys, flat, logprior.reshape(-1), loglik.reshape(-1), h, lam, rendered),
+            rendered[0].shape[-4] * rendered[0].shape[-3] * rendered[0].shape[-2])   # pixels x 4 bases
         moved = moved.reshape(z.shape)
         jumped = jumped.reshape(loglik.shape).mean(axis=1) if jump else jnp.full(loglik.shape[:1], jnp.nan)
         return (moved, new_loglik.reshape(loglik.shape), logprior_all(moved, index)), \
