@@ -21,12 +21,16 @@ share the machine with an evaluation and still say where a worker's seconds go. 
 after the first and prints the XLA kernels and callbacks that took the most time in it, each by its
 own time (less what ran nested inside it): how the JAX side's seconds were found (docs/notebook.md,
 "The object's pixels from the render itself"). Match a kernel's name to its source with
-``XLA_FLAGS=--xla_dump_to=DIR``'s ``*after_optimizations.txt``.
+``XLA_FLAGS=--xla_dump_to=DIR``'s ``*after_optimizations.txt``. ``--kernels`` prints each of the SMC's compiled
+kernels' CPU seconds, less their renders (:class:`KernelClock`), and times one walk and one material update
+of the last sweeps' particles alone: how the material update was found to cost three walks (docs/notebook.md,
+"The material update's own arithmetic").
 """
 from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import gzip
 import json
 import os
@@ -121,6 +125,85 @@ def own_times(trace: Path, top: int = 15) -> list[tuple[str, float, int]]:
     return [(name, seconds / 1e6, count[name]) for name, seconds in own.most_common(top)]
 
 
+class KernelClock:
+    """CPU seconds inside each of the SMC's compiled kernels (:mod:`mitsuba_p3.infer.smc_moves`' ``Kernels``:
+    ``sweeps``, ``score``, ``gradient``, ...) and of the tempering's steps, each call waited for, and the part of
+    them that the Mitsuba renders of ``clock`` took: what a kernel costs on the JAX side is the difference."""
+
+    def __init__(self, clock: RenderClock):
+        self.clock = clock
+        self.cpu = collections.defaultdict(float)
+        self.rendering = collections.defaultdict(float)
+        self.calls = collections.Counter()
+        self.last = {}
+
+    def __enter__(self):
+        import functools
+
+        from mitsuba_p3.infer import smc_moves, tempering
+
+        self._patched = []
+        original = smc_moves._kernels.__wrapped__
+
+        @functools.lru_cache(maxsize=4)
+        def kernels(*args):
+            made = original(*args)
+            timed = made._replace(**{name: self._timed(name, getattr(made, name))
+                                     for name in made._fields if callable(getattr(made, name))})
+            sweeps = timed.sweeps
+
+            def kept(*arguments, **options):       # the full-size sweeps' last arguments, for :meth:`split`
+                self.last[made.walk] = (made, arguments)
+                return sweeps(*arguments, **options)
+            return timed._replace(sweeps=kept)
+        for module, name in ((smc_moves, "_kernels"),):
+            self._patched.append((module, name, getattr(module, name)))
+            setattr(module, name, kernels)
+        for name in ("increments", "resample"):
+            self._patched.append((tempering, name, getattr(tempering, name)))
+            setattr(tempering, name, self._timed(f"tempering.{name}", getattr(tempering, name)))
+        return self
+
+    def __exit__(self, *exc):
+        for module, name, value in self._patched:
+            setattr(module, name, value)
+
+    def split(self) -> list[str]:
+        """One walk and one material update of each kernel set's last sweeps call, timed alone (each
+        compiled and run once first): what a ``sweeps`` call's seconds are made of."""
+        lines = []
+        for made, (key, particles, index, lam, tril, centres, observation, total) in self.last.values():
+            shape = tuple(particles[0].shape)
+            for name, run in (("walk", lambda: made.walk(key, particles, index, lam, tril, centres, observation)),
+                              ("material", lambda: made.material(key, particles, index, lam, observation))):
+                import jax
+
+                jax.block_until_ready(run())
+                begin, rendered = cpu_seconds(), self.clock.cpu
+                jax.block_until_ready(run())
+                lines.append(f"    one {name} of {shape[0]} x {shape[1]} particles: CPU {cpu_seconds() - begin:.2f} s, "
+                             f"{self.clock.cpu - rendered:.2f} s of it rendering")
+        return lines
+
+    def reset(self):
+        self.last = {}
+        self.cpu.clear()
+        self.rendering.clear()
+        self.calls.clear()
+
+    def _timed(self, name, fn):
+        import jax
+
+        def timed(*args, **kwargs):
+            begin, rendered = cpu_seconds(), self.clock.cpu
+            out = jax.block_until_ready(fn(*args, **kwargs))
+            self.cpu[name] += cpu_seconds() - begin
+            self.rendering[name] += self.clock.cpu - rendered
+            self.calls[name] += 1
+            return out
+        return timed
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("model", type=Path, help="a fitted-model folder (mitsuba-p3 fit)")
@@ -128,6 +211,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=SMCConfig.rounds, help="SMC rounds of runs")
     parser.add_argument("--threads", type=int, default=None,
                         help="render and XLA threads, as an evaluation worker's (default: one per core)")
+    parser.add_argument("--kernels", action="store_true",
+                        help="also print each compiled kernel's CPU seconds, rendering and not (KernelClock)")
     parser.add_argument("--profile", action="store_true",
                         help="trace the images after the first; print the kernels that took the most time")
     args = parser.parse_args()
@@ -145,9 +230,11 @@ def main() -> None:
     fitted = FittedModel(args.model)
     likelihood = default_likelihood(fitted, "p3", noise=DEFAULT_NOISE)
     config = SMCConfig(rounds=args.rounds)
-    with RenderClock() as clock:
+    with RenderClock() as clock, (KernelClock(clock) if args.kernels else contextlib.nullcontext()) as kernels:
         for number, path in enumerate(args.images):
             clock.reset()
+            if kernels:
+                kernels.reset()
             begin, begin_cpu = time.perf_counter(), cpu_seconds()
             if args.profile and number > 0:
                 with jax.profiler.trace(str(traces / str(number)), create_perfetto_trace=True):
@@ -165,6 +252,12 @@ def main() -> None:
             for (height, width), (seconds, scenes) in sorted(clock.by_size.items()):
                 print(f"    renderer {height}x{width}: {seconds:.1f} s, {scenes} scenes "
                       f"({1e3 * seconds / max(scenes, 1):.2f} ms per scene)", flush=True)
+            if kernels:
+                for name, seconds in sorted(kernels.cpu.items(), key=lambda item: -item[1]):
+                    print(f"    kernel {name}: CPU {seconds:.1f} s in {kernels.calls[name]} calls, "
+                          f"{kernels.rendering[name]:.1f} s of it rendering, {seconds - kernels.rendering[name]:.1f} s not",
+                          flush=True)
+                print("\n".join(kernels.split()), flush=True)
             for trace in sorted((traces / str(number)).glob("**/perfetto_trace.json.gz")):
                 for name, seconds, calls in own_times(trace):
                     print(f"    {seconds:7.2f} s {calls:7d} x  {name[:100]}")
