@@ -798,7 +798,7 @@ def test_the_shading_fields_likelihood_traces_the_object_it_scores(fitted):
         core = PosteriorCore(fitted, replace(likelihood, fields_channels=channels), "mitsuba", 120, 160)
         bases, objects = core._image(z, observation, bases=True)
         p = contract_params(core.prior, z)
-        gram = np.asarray(core._gram(bases, objects, observation, 1.0, p["colour"]))
+        gram = np.asarray(core._gram(core._gram_statistics(bases, objects, observation), 1.0, p["colour"]))
         assert gram.shape == ((3, 4, 4) if channels == "independent" else (3, 3, 4, 4))
         full = gram if gram.ndim == 4 else np.einsum("cd,cij->cdij", np.eye(3), gram)
         values = []

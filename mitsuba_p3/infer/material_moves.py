@@ -20,6 +20,8 @@ of z for an observation, and the pixels its object covers), ``_score`` and ``win
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from .. import small_linalg
@@ -30,6 +32,14 @@ from .material_conditional import MixtureConditional
 
 # The ridge move's step: log s ~ N(0, RIDGE_STEP^2), a fifth of an e-fold of the colour's brightness.
 RIDGE_STEP = 0.2
+
+
+class ScoredState(NamedTuple):
+    """An MH state (position, log density) that also carries its log likelihood, which the material's
+    independence tests update as they accept (:meth:`MaterialMoves.scored_material_move`)."""
+    position: object
+    logdensity: object
+    loglikelihood: object
 
 
 class MaterialMoves:
@@ -106,81 +116,108 @@ class MaterialMoves:
         return bases, objects, self._image(self._jump_proposal(k_jump, position), observation, bases=True)[0]
 
     def scored_material_move(self, key, state, observation, tempering=1.0, log_prior=None, jump: bool = False,
-                             rendered: tuple | None = None):
+                             rendered: tuple | None = None, loglikelihood=None):
         """:meth:`material_move`, also returning log p(I | z) of the new state, computed from the
         bases it rendered: a tempered sampler needs the likelihood apart from the prior, and this
         saves it a render per move. With ``jump``, the material kind's jump (:meth:`_kind_jump`, one
         more render) comes first. ``rendered``: :meth:`material_renders` of the same key and position,
-        made beforehand (then this move renders nothing). Returns (state, colour and weights accepted,
-        log likelihood, jump accepted (False without ``jump``))."""
+        made beforehand (then this move renders nothing). ``loglikelihood``: the state's log likelihood where
+        the caller has it (a sampler's cache): the move then returns the one its MH tests computed for the
+        state kept (that, where every proposal was rejected) and scores no render after them. Returns (state,
+        colour and weights accepted, log likelihood, jump accepted (False without ``jump``))."""
         import jax
         import jax.numpy as jnp
 
         k_colour, k_weights, k_jump = jax.random.split(key, 3)
+        kind = type(state)
+        if loglikelihood is not None:
+            state = ScoredState(state.position, state.logdensity, loglikelihood)
         bases, objects, jump_bases = rendered or self.material_renders(key, state.position, observation, jump)
-        gram = self._gram(bases, objects, observation, tempering, self.params(state.position)["colour"])
+        statistics = self._gram_statistics(bases, objects, observation)
+        gram = self._gram(statistics, tempering, self.params(state.position)["colour"])
         # the material moves leave the pose, so the window's term (mitsuba_p3.infer.window) and the object's
         # pixels are the state's throughout
         term = self.window_log_term(state.position, observation)
         target = (tempering, log_prior or self.prior.log_prob, term, objects)
         jumped = jnp.asarray(False)
         if jump:
-            state, jumped, bases, gram = self._kind_jump(k_jump, state, bases, gram, observation, target, jump_bases)
+            state, jumped, bases, gram, statistics = self._kind_jump(k_jump, state, bases, gram, statistics,
+                                                                     observation, target, jump_bases)
         # (tinted fields load on the colour: the weights' conditional takes the Gram of the colour kept)
-        state, colour_ok, gram = self._colour_move(k_colour, state, bases, gram, observation, target)
+        state, colour_ok, gram = self._colour_move(k_colour, state, bases, gram, observation, target, statistics)
         state, weights_ok = self._weights_move(k_weights, state, bases, gram, observation, target)
-        loglik = self._score(self._image_from_bases(bases, state.position), objects, observation,
-                             state.position) + term
-        return state, colour_ok & weights_ok, loglik, jumped
+        if isinstance(state, ScoredState):
+            loglik = state.loglikelihood
+        else:
+            loglik = self._score(self._image_from_bases(bases, state.position), objects, observation,
+                                 state.position) + term
+        return kind(state.position, state.logdensity), colour_ok & weights_ok, loglik, jumped
 
     @property
     def _tinted(self) -> bool:
         """Whether the likelihood's shading fields load on the object's colour (their Gram then depends on it)."""
         return self.config.fields is not None and self.config.fields_channels in COLOURED
 
-    def _gram(self, bases, objects, observation, tempering, colour=None):
-        """The tempered precision-weighted inner products of the bases A, D, S and the residual
-        r = I_obs - F, each taken in one colour channel: both material conditionals need only these.
-        (3, 4, 4) per channel where the noise keeps the channels apart; (3, 3, 4, 4) [c, c', i, j]
-        where it couples them (shading fields shared across channels, :mod:`mitsuba_p3.fit.fields`, whose
-        regions need the pixels the object covers, ``objects``; None for the other noise forms)."""
+    def _gram_statistics(self, bases, objects, observation) -> tuple:
+        """What :meth:`_gram` needs of the bases that the colour leaves alone: the inner products of the
+        bases A, D, S and the residual r = I_obs - F, all channels' (4, 3, 4, 3), and under shading fields
+        the vectors' field statistics (:func:`~mitsuba_p3.fit.fields.field_statistics` of the regions of
+        the pose: its object's pixels ``objects``, the floor its shadow changes, the rest of the floor);
+        None without fields. Computed once per bases: the tinted fields' colour move takes a second Gram
+        at the proposal's colour from the same statistics."""
         import jax.numpy as jnp
+
+        from ..fit.fields import field_statistics, monomials
 
         vectors = jnp.concatenate([bases[..., :3, :], (observation["image"] - bases[..., 3, :])[..., None, :]],
                                   axis=-2)                                          # (h, w, 4, 3)
-        precision = tempering * self.config.power / self.config.sigma ** 2
         if self.config.spectral:
-            # the spectral form's quadratic is that of whitened images (linear), at precision power
+            # the spectral form's quadratic is that of whitened images (linear)
             vectors = jnp.moveaxis(whiten(jnp.moveaxis(vectors, -2, 0), observation, self.config), 0, -2)
-            precision = tempering * self.config.power
         flat = vectors.reshape(-1, 12)                                              # (pixels, 4 x 3)
         full = (flat.T @ flat).reshape(4, 3, 4, 3)                                  # one matmul: XLA's fast path
+        if self.config.fields is None:
+            return full, None
+        masks = fields_masks(bases[..., 3, :], objects, observation["empty"], fields_regions(self.config))
+        basis = monomials(*vectors.shape[:2], self.config.fields_degree)
+        return full, field_statistics(jnp.moveaxis(vectors, -2, 0), masks, basis, xp=jnp)   # b: (4, R, k, 3)
+
+    def _gram(self, statistics, tempering, colour=None):
+        """The tempered precision-weighted inner products of the bases A, D, S and the residual
+        r = I_obs - F, each taken in one colour channel, from :meth:`_gram_statistics`: both material
+        conditionals need only these. (3, 4, 4) per channel where the noise keeps the channels apart;
+        (3, 3, 4, 4) [c, c', i, j] where it couples them (shading fields shared across channels,
+        :mod:`mitsuba_p3.fit.fields`; tinted ones load on the object's ``colour``)."""
+        import jax.numpy as jnp
+
+        full, fields = statistics
+        precision = tempering * self.config.power / self.config.sigma ** 2
+        if self.config.spectral:    # the whitened vectors' quadratic is at precision power
+            precision = tempering * self.config.power
         # the Gaussian part of the likelihood (outliers are left to the MH test)
         gram = jnp.einsum("icjc->cij", full)
         if self.config.fields is not None:
-            correction = self._fields_correction(vectors, bases, objects, observation, colour)  # (3, 3, 4, 4)
+            correction = self._fields_correction(fields, colour)                      # (3, 3, 4, 4)
             if self.config.fields_channels == "independent":
                 gram = gram - jnp.einsum("ccij->cij", correction)
             else:
                 gram = jnp.einsum("cd,cij->cdij", jnp.eye(3, dtype=gram.dtype), gram) - correction
         return gram * precision
 
-    def _fields_correction(self, vectors, bases, objects, observation, colour=None):
+    def _fields_correction(self, statistics, colour=None):
         """(3, 3, 4, 4) [c, c', i, j] what the shading fields take off the inner products of vector i in
         channel c and vector j in channel c': under covariance sigma^2 I + B T B' the precision is
         (I - B (G + sigma^2 T^-1)^-1 B') / sigma^2, so x'Qy is the white x'y / sigma^2 less
         (B'x)' (G + sigma^2 T^-1)^-1 (B'y) / sigma^2 (:mod:`mitsuba_p3.fit.fields`). Zero for c != c' when
-        every field is a single channel's. The regions are the pose's: its object's pixels, the floor
-        its shadow changes, and the rest of the floor where the form has that region (the materials move
-        none of them). Tinted fields load on the object's ``colour`` (3,) (:mod:`mitsuba_p3.fit.fields`)."""
+        every field is a single channel's. ``statistics``: the vectors' field statistics on the pose's
+        regions (:meth:`_gram_statistics`; the materials move none of them). Tinted fields load on the
+        object's ``colour`` (3,) (:mod:`mitsuba_p3.fit.fields`)."""
         import jax.numpy as jnp
 
-        from ..fit.fields import column_statistics, field_statistics, per_region
+        from ..fit.fields import column_statistics, per_region
 
-        height, width = vectors.shape[:2]
-        masks = fields_masks(bases[..., 3, :], objects, observation["empty"], fields_regions(self.config))
-        variances, basis, loading = fields_form(self.config, height, width, colours=colour, xp=jnp)
-        statistics = field_statistics(jnp.moveaxis(vectors, -2, 0), masks, basis, xp=jnp)   # b: (4, R, k, 3)
+        # (the fields' scales and loadings do not depend on the window; the basis came with the statistics)
+        variances, _, loading = fields_form(self.config, 1, 1, colours=colour, xp=jnp)
         _, gram, _, _ = column_statistics(statistics, loading, xp=jnp)                       # (R, K, K)
         loading = per_region(jnp.asarray(loading, gram.dtype), gram.shape[0], jnp)
         # B'x for vector i taken in channel c alone: (4, 3, R, K)
@@ -204,7 +241,7 @@ class MaterialMoves:
         alpha = means[component] + sds[component] * jax.random.normal(k_noise)
         return position.at[SLICES["shininess"].start].set((alpha - loc) / std)
 
-    def _kind_jump(self, key, state, bases, gram, observation, target, new_bases=None):
+    def _kind_jump(self, key, state, bases, gram, statistics, observation, target, new_bases=None):
         """The material kind's jump: a new shininess drawn from its prior (a mixture of the fitted
         materials' components: broad highlights and tight ones), the weights (k_a, k_d, k_s) drawn from
         their conditional at the new shininess's bases (one render) given the colour, accepted with the
@@ -212,8 +249,8 @@ class MaterialMoves:
         conditional at the current bases. The walk moves the shininess only locally and the weights
         follow it only through the Gibbs update, so a run whose particles settled on one kind of
         highlight could keep them there; this move proposes the other kind whole (on fsclvr's misread
-        metals it found no missed mode: docs/notebook.md). Returns (state, accepted, bases and gram of
-        the state kept)."""
+        metals it found no missed mode: docs/notebook.md). Returns (state, accepted, bases, gram and Gram
+        statistics (:meth:`_gram_statistics`) of the state kept)."""
         import jax
         import jax.numpy as jnp
 
@@ -230,7 +267,8 @@ class MaterialMoves:
         if new_bases is None:                                                # the same pose: the same objects
             new_bases, _ = self._image(moved, observation, bases=True)
         colour = self.params(position)["colour"]
-        new_gram = self._gram(new_bases, target[3], observation, target[0], colour)
+        new_statistics = self._gram_statistics(new_bases, target[3], observation)
+        new_gram = self._gram(new_statistics, target[0], colour)
         dims, w_loc, w_std = self._weight_coordinates()
         old, new = self._weights_conditional(gram, colour), self._weights_conditional(new_gram, colour)
         weights = new.draw(k_weights)
@@ -239,7 +277,9 @@ class MaterialMoves:
                        - log_q_alpha(new_position[s]) - new.log_q(weights))
         state, accepted = self._independence_mh(k_accept, state, new_position, new_bases, log_q_ratio,
                                                 observation, target)
-        return (state, accepted, jnp.where(accepted, new_bases, bases), jnp.where(accepted, new_gram, gram))
+        keep = lambda new, old: jnp.where(accepted, new, old)  # noqa: E731
+        return (state, accepted, keep(new_bases, bases), keep(new_gram, gram),
+                jax.tree_util.tree_map(keep, new_statistics, statistics))
 
     def _image_from_bases(self, bases, z):
         """The image at position z whose pose, class and shininess gave ``bases`` (H, W, 4, 3)."""
@@ -249,9 +289,11 @@ class MaterialMoves:
         A, D, S, F = (bases[..., i, :] for i in range(4))
         return jnp.clip(p["colour"] * (p["ambient"] * A + p["diffuse"] * D) + p["specular"] * S + F, 0.0, 1.0)
 
-    def _colour_move(self, key, state, bases, gram, observation, target):
+    def _colour_move(self, key, state, bases, gram, observation, target, statistics=None):
         """The colour's conditional given the weights: a 3-D Gaussian mixture (one per GMM component).
-        Returns (state, accepted, the Gram matrices of the colour kept)."""
+        ``statistics``: the bases' :meth:`_gram_statistics` (the tinted fields' way back takes the Gram at the
+        proposal's colour from them; computed here if not given). Returns (state, accepted, the Gram matrices
+        of the colour kept)."""
         import jax
         import jax.numpy as jnp
 
@@ -263,7 +305,7 @@ class MaterialMoves:
         slope = jnp.stack([p["ambient"], p["diffuse"], 0.0 * p["specular"]])
         offset = jnp.stack([0.0, 0.0, p["specular"]])
         if gram.ndim == 4:
-            return self._coupled_colour_move(key, state, bases, gram, observation, target, slope, offset)
+            return self._coupled_colour_move(key, state, bases, gram, observation, target, slope, offset, statistics)
         precision = jnp.einsum("i,cij,j->c", slope, gram[:, :3, :3], slope)       # sum slope^2 / sigma^2
         linear = slope @ gram[:, :3, 3].T - jnp.einsum("i,cij,j->c", slope, gram[:, :3, :3], offset)
         means, variances = jnp.asarray(gmm.means), jnp.asarray(gmm.variances)       # (K, 3)
@@ -287,7 +329,7 @@ class MaterialMoves:
         return (*self._independence_mh(k_accept, state, new_position, bases, log_q(current) - log_q(proposal),
                                        observation, target), gram)
 
-    def _coupled_colour_move(self, key, state, bases, gram, observation, target, slope, offset):
+    def _coupled_colour_move(self, key, state, bases, gram, observation, target, slope, offset, statistics=None):
         """:meth:`_colour_move` where the noise couples the channels (``gram`` (3, 3, 4, 4)): each GMM
         component's conditional is then a full trivariate Gaussian (:meth:`_coupled_colour_conditional`)."""
         import jax
@@ -305,7 +347,8 @@ class MaterialMoves:
             return (*self._independence_mh(k_accept, state, new_position, bases, conditional.log_q(current)
                                            - conditional.log_q(proposal), observation, target), gram)
         # the conditional was built on the current colour's loading: the way back on the proposal's
-        new_gram = self._gram(bases, target[3], observation, target[0], self.params(new_position)["colour"])
+        statistics = statistics or self._gram_statistics(bases, target[3], observation)
+        new_gram = self._gram(statistics, target[0], self.params(new_position)["colour"])
         reverse = self._coupled_colour_conditional(new_gram, slope, offset)
         state, accepted = self._independence_mh(k_accept, state, new_position, bases,
                                                 reverse.log_q(current) - conditional.log_q(proposal), observation, target)
@@ -380,8 +423,10 @@ class MaterialMoves:
 
         tempering, log_prior, term, objects = target
         image = self._image_from_bases(bases, new_position)
-        new_logdensity = (log_prior(new_position)
-                          + tempering * (self._score(image, objects, observation, new_position) + term))
+        new_loglikelihood = self._score(image, objects, observation, new_position) + term
+        new_logdensity = log_prior(new_position) + tempering * new_loglikelihood
         accept = jnp.log(jax.random.uniform(key)) < new_logdensity - state.logdensity + log_q_ratio
-        return (type(state)(jnp.where(accept, new_position, state.position),
-                            jnp.where(accept, new_logdensity, state.logdensity)), accept)
+        kept = (jnp.where(accept, new_position, state.position), jnp.where(accept, new_logdensity, state.logdensity))
+        if isinstance(state, ScoredState):     # the log likelihood of the state kept, as the move computed it
+            kept = kept + (jnp.where(accept, new_loglikelihood, state.loglikelihood),)
+        return type(state)(*kept), accept

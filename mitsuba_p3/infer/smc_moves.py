@@ -176,7 +176,8 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str, cha
         def one(key, position, logprior_value, loglik_value, row_hypothesis, lam_value, rendered):
             state = RWState(position, logprior_value + lam_value * loglik_value)
             new, accepted, new_loglik, jumped = core.scored_material_move(
-                key, state, observation, lam_value, lambda p: log_prior(p, row_hypothesis), jump, rendered)
+                key, state, observation, lam_value, lambda p: log_prior(p, row_hypothesis), jump, rendered,
+                loglik_value)
             return new.position, new_loglik, accepted, jumped
 
         keys = jax.random.split(key, h.shape[0])
