@@ -693,8 +693,9 @@ def test_scores_in_chunks_are_each_particles_own_score(fitted, monkeypatch):
     """The sampler's batched likelihood (:meth:`PosteriorCore.log_likelihoods`: one batched render, the
     scores in chunks) is each particle's :meth:`PosteriorCore.log_likelihood` under the shading fields, in
     a window, for a batch of three chunks and a remainder; the whole-batch rule gives the same values;
-    and a material move whose bases were rendered beforehand (``rendered``, as the batched sampler
-    renders them) is the move that renders its own."""
+    a material move whose bases were rendered beforehand (``rendered``, as the batched sampler
+    renders them) is the move that renders its own; and one given the state's log likelihood moves alike
+    and returns the kept state's."""
     import jax
     import jax.numpy as jnp
     from blackjax.mcmc.random_walk import RWState
@@ -732,6 +733,15 @@ def test_scores_in_chunks_are_each_particles_own_score(fitted, monkeypatch):
     given = move(key, state, observation, rendered)
     for a, b in zip(jax.tree_util.tree_leaves(own), jax.tree_util.tree_leaves(given)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # given the state's log likelihood (the sampler's cache), the move makes the same moves and returns the
+    # one its MH tests computed for the state kept (or the one given, where it rejected every proposal),
+    # which is the score of the state kept from its bases up to the render's rounding
+    carried = jax.jit(lambda k, s, o, r, ll: core.scored_material_move(k, s, o, 0.5, jump=True, rendered=r,
+                                                                       loglikelihood=ll))(
+        key, state, observation, rendered, jnp.float32(alone[0]))
+    np.testing.assert_array_equal(np.asarray(carried[0].position), np.asarray(own[0].position))
+    assert type(carried[0]) is type(state)
+    assert float(carried[2]) == pytest.approx(float(own[2]), abs=0.05)
 
 
 def test_the_shading_fields_likelihood_traces_the_object_it_scores(fitted):
