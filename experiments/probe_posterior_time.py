@@ -152,13 +152,12 @@ class KernelClock:
                                      for name in made._fields if callable(getattr(made, name))})
             sweeps = timed.sweeps
 
-            def kept(*arguments, **options):       # the full-size sweeps' last arguments, for :meth:`split`
+            def kept(*arguments, **options):       # each kernel set's last sweeps arguments, for :meth:`split`
                 self.last[made.walk] = (made, arguments)
                 return sweeps(*arguments, **options)
             return timed._replace(sweeps=kept)
-        for module, name in ((smc_moves, "_kernels"),):
-            self._patched.append((module, name, getattr(module, name)))
-            setattr(module, name, kernels)
+        self._patched.append((smc_moves, "_kernels", smc_moves._kernels))
+        smc_moves._kernels = kernels
         for name in ("increments", "resample"):
             self._patched.append((tempering, name, getattr(tempering, name)))
             setattr(tempering, name, self._timed(f"tempering.{name}", getattr(tempering, name)))
@@ -171,13 +170,13 @@ class KernelClock:
     def split(self) -> list[str]:
         """One walk and one material update of each kernel set's last sweeps call, timed alone (each
         compiled and run once first): what a ``sweeps`` call's seconds are made of."""
+        import jax
+
         lines = []
         for made, (key, particles, index, lam, tril, centres, observation, total) in self.last.values():
             shape = tuple(particles[0].shape)
             for name, run in (("walk", lambda: made.walk(key, particles, index, lam, tril, centres, observation)),
                               ("material", lambda: made.material(key, particles, index, lam, observation))):
-                import jax
-
                 jax.block_until_ready(run())
                 begin, rendered = cpu_seconds(), self.clock.cpu
                 jax.block_until_ready(run())
