@@ -274,7 +274,6 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
     count = len(space.names)
     image = np.asarray(observation["image"])
     check_sampler_memory(config, count, int(np.prod(config.window or image.shape[:2])))
-    window = None
     if start is not None:
         window = start.window
         if "window" not in observation:
@@ -284,11 +283,11 @@ def sample_smc(core, observation, config: SMCConfig | None = None,
         rows, rounds = bridge(core, observation, start.rows, config, key, progress), 1
         pooled = pooled_evidence(rows, count)
     else:
+        # the window handed in (SBC's, on which its fields were drawn), else the one the footprint picks
+        if window is None and config.window and "window" not in observation:
+            window = core.window_for(image, tuple(config.window))
         if window is not None and "window" not in observation:
             observation = core.observe(image, tuple(window), outside_window(config))
-        elif config.window and "window" not in observation:
-            window = core.window_for(image, tuple(config.window))
-            observation = core.observe(image, window, outside_window(config)) if window else observation
         rows, pooled, rounds = _rounds(core, observation, image, space, config, rng, key, progress)
     run = _run(core, rows, pooled, space, config, rng, window, rounds, time.perf_counter() - begin)
     run.statistics.update(object_evidence(core, observation, rows, space, pooled))
