@@ -1467,6 +1467,36 @@ def test_sbc_of_the_shading_fields_simulates_fields_on_the_window_the_sampler_sc
     assert result.ranks.shape == (1, 8) and 0 <= result.ranks.min() and result.ranks.max() <= 9
 
 
+def test_the_smc_scores_the_window_it_is_handed_not_the_footprints(fitted):
+    """SBC under the shading fields draws its fields on a window it picks before them and hands that window
+    to the sampler: the sampler must score it, not the one the image's footprint (fields included) would
+    pick. Each final particle's cached log likelihood is its score on the handed window."""
+    import jax.numpy as jnp
+
+    from mitsuba_p3.evaluate.sbc import model_core, simulate
+    from mitsuba_p3.infer.smc import SMCConfig, sample_smc, outside_window
+
+    core = model_core(fitted.root, resolution=RES, noise="fields")
+    config = SMCConfig(particles=4, oversample=2, mcmc_steps=1, final_steps=0, draws=8, islands=1, window=(20, 28),
+                       wide_steps=0, rounds=1, importance=0)
+    for seed in range(8):
+        image, _, _ = simulate(core, np.random.default_rng(seed))
+        picked = core.window_for(image, config.window)
+        if picked is not None:
+            break
+    assert picked is not None
+    top, left, height, width = picked
+    handed = (min(top + 3, RES[0] - height), max(left - 3, 0), height, width)
+    assert handed != picked
+    run = sample_smc(core, core.observe(image), config, window=handed)
+    assert tuple(run.statistics["window"]) == handed
+    observation = core.observe(image, handed, outside_window(config))
+    state = run.particles.rows.state
+    positions = jnp.asarray(state.position.reshape(-1, state.position.shape[-1]))
+    np.testing.assert_allclose(np.asarray(core.log_likelihoods(positions, observation)),
+                               state.loglikelihood.reshape(-1), rtol=1e-4, atol=0.05)
+
+
 def test_infer_names_the_material_by_a_rule_saved_by_evaluate(fitted, observed, tmp_path):
     """A material rule learnt from train posteriors (here: made-up ones, with their Phong misfits) is
     saved as plain numbers, read back with the same decisions, and ``infer``'s report uses it, the
