@@ -15,7 +15,8 @@ seed ``mitsuba-p3 sbc`` gives them), this runs the SMC under each setting and re
 - the walk's final acceptance and the run's seconds;
 - the same deficit in the log **target** (log prior + log likelihood), and where the truth's height
   (log_scale_z) and y position fall among the true shape's final particles (their share below the truth:
-  near 1 for the height, 0 for y, is SBC's lean of the thirty-seventh session, results/sbc-importance).
+  near 1 for the height, 0 for y, was the lean of results/sbc-importance, whose sampler scored another window
+  than its fields': results/sbc-window).
 
 With ``--noise fields`` each simulation is the shading fields' one, drawn exactly as ``mitsuba-p3 sbc --noise
 fields`` draws it (:func:`~mitsuba_p3.evaluate.sbc.simulate_scored` on the config's window, the same seeds), so
@@ -43,10 +44,10 @@ def main() -> None:
                         help="the SBC run's noise form (mitsuba-p3 sbc --noise)")
     args = parser.parse_args()
 
+    from dataclasses import replace
+
     import jax
     import jax.numpy as jnp
-
-    from dataclasses import replace
 
     from mitsuba_p3.evaluate.sbc import model_core, simulate_scored
     from mitsuba_p3.infer.smc import SMCConfig, sample_smc
