@@ -1474,7 +1474,7 @@ def test_the_smc_scores_the_window_it_is_handed_not_the_footprints(fitted):
     import jax.numpy as jnp
 
     from mitsuba_p3.evaluate.sbc import model_core, simulate
-    from mitsuba_p3.infer.smc import SMCConfig, sample_smc, outside_window
+    from mitsuba_p3.infer.smc import SMCConfig, outside_window, sample_smc
 
     core = model_core(fitted.root, resolution=RES, noise="fields")
     config = SMCConfig(particles=4, oversample=2, mcmc_steps=1, final_steps=0, draws=8, islands=1, window=(20, 28),
