@@ -94,7 +94,8 @@ def main() -> None:
     rounds = max(s["rounds"] for s in settings)
     table = {r: {"agree": [], "spread": [], "p_true": [], "runs": []} for r in [*range(1, rounds + 1), "se"]}
     for image in images:
-        true = SHAPES.index(dataset.shots[image].cls.shape)
+        shape = dataset.shots[image].cls.shape
+        true = SHAPES.index(shape) if shape in SHAPES else None     # ood's shapes are none of them
         per_seed = []
         for run in args.runs:
             cached = np.load(posterior_path(run, "p3", image))
@@ -117,13 +118,15 @@ def main() -> None:
             odds = np.log(probs[:, top[1]] + 1e-12) - np.log(probs[:, top[0]] + 1e-12)
             table[r]["agree"].append(len(set(modal)) == 1)
             table[r]["spread"].append(float(np.ptp(odds)))
-            table[r]["p_true"].append(float(probs[:, true].mean()))
+            table[r]["p_true"].append(float(probs[:, true].mean()) if true is not None else np.nan)
             table[r]["runs"].append(float(np.mean([used for _, used, _ in at])))
-            line.append(f"r{r}: p(true) " + "/".join(f"{p:.2f}" for p in probs[:, true]))
+            shown, label = (probs[:, true], "p(true)") if true is not None else (probs[:, top[1]], SHAPES[top[1]])
+            line.append(f"r{r}: {label} " + "/".join(f"{p:.2f}" for p in shown))
         print("  ".join(line), flush=True)
     summary = {f"rounds_{r}": {"modal_shape_same_across_seeds": float(np.mean(v["agree"])),
                                "log_odds_spread_median": float(np.median(v["spread"])),
-                               "p_true_shape_mean": float(np.mean(v["p_true"])),
+                               "p_true_shape_mean": (None if np.all(np.isnan(v["p_true"]))       # ood: no true shape
+                                                     else float(np.nanmean(v["p_true"]))),
                                "runs_per_posterior": float(np.mean(v["runs"]))} for r, v in table.items()}
     print(json.dumps({"images": images, "seeds": len(args.runs), **summary}, indent=1))
 

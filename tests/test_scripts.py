@@ -576,3 +576,31 @@ def test_each_distance_writes_its_own_tables_folder(tmp_path):
     assert tables_dir(tmp_path, DistanceConfig(spread_shots=0, tails=False)) == tmp_path / "spread0"  # no kernels to differ
     assert (tables_dir(tmp_path, DistanceConfig(properties=("colour", "class"), tails=False))
             == tmp_path / "distance-colour+class-gaussian-concepts")
+
+
+def test_the_seed_swap_probe_scores_again_only_the_episodes_that_hold_the_swapped_image():
+    """experiments/probe_seed_swaps.py: an image's posterior swapped in moves the cells, and scoring again only the
+    episodes that hold it gives what scoring every episode gives."""
+    from types import SimpleNamespace
+
+    from mitsuba_p3.evaluate.config import EvaluationConfig
+    from mitsuba_p3.evaluate.jobs import CachedPosterior
+
+    probe = load_script("probe_seed_swaps")
+    shots = {f"c{c}": [SimpleNamespace(index=3 * c + j) for j in range(3)] for c in range(6)}
+    dataset = SimpleNamespace(classes=lambda split: sorted(shots), shots_of=lambda name: shots[name])
+    rng = np.random.default_rng(2)
+
+    def posterior(centre: float) -> CachedPosterior:
+        return CachedPosterior(program(rng, centre, 0.05), np.zeros(2), 0.0, 0, 1.0, float("nan"), float("nan"))
+
+    a = {3 * c + j: posterior(float(c)) for c in range(6) for j in range(3)}
+    config = EvaluationConfig(episodes=30, distance=DistanceConfig(samples=100))
+    settings = [(5, 1), (5, 2)]
+    base = probe.episode_scores(dataset, a, None, settings, config)
+    assert probe.cells(base).tolist() == [100.0, 100.0]
+    swapped = {**a, 4: posterior(3.0)}                        # an image of class c1 read as class c3
+    partial = probe.episode_scores(dataset, swapped, None, settings, config, only={4}, base=base)
+    whole = probe.episode_scores(dataset, swapped, None, settings, config)
+    assert all(np.array_equal(p, w) for p, w in zip(partial, whole))
+    assert (probe.cells(whole) < 100.0).all()
