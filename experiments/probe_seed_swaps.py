@@ -19,8 +19,8 @@ swapped image are scored again.
 from __future__ import annotations
 
 import argparse
-import functools
 import json
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -97,12 +97,17 @@ def main() -> None:
     names = [setting_name(n, k) for n, k in settings]
     a, spread_a = load_run(dataset, args.a, config)
     b, spread_b = load_run(dataset, args.b, config)
-    score = functools.partial(episode_scores, dataset, settings=settings, config=config)
+    calls = iter(range(1, 10 ** 6))
+
+    def score(*args, **kwargs):       # a few minutes a whole scoring on 2 cores: say where it is
+        print(f"scoring {next(calls)}...", file=sys.stderr, flush=True)
+        return episode_scores(dataset, *args, settings=settings, config=config, **kwargs)
+
     scores = score(a, spread_a)
     base = cells(scores)
     rows = {"B": cells(score(b, spread_b)) - base}
-    rows["B's spread"] = (cells(score(a, spread_b)) - base if spread_b.to_json() != spread_a.to_json()
-                          else np.zeros(len(settings)))
+    same_spread = (spread_a and spread_a.to_json()) == (spread_b and spread_b.to_json())
+    rows["B's spread"] = np.zeros(len(settings)) if same_spread else cells(score(a, spread_b)) - base
     for path in args.spread:
         other_spread = ConceptSpread.from_json(json.loads(path.read_text()))
         rows[f"spread of {path.parent.name}"] = cells(score(a, other_spread)) - base
