@@ -8,7 +8,8 @@ into run A at a time, and prints each part's move of every cell (points):
 - ``B's posteriors``: every test posterior of B, with A's spread; split into the **shape-moved images** (one shape's
   share of the draws differs between A and B by more than ``--moved``: a posterior the seed decides) together, and
   the other images (their moves through the continuous draws), with each shape-moved image's own move beside its
-  shape shares and island gap in both runs.
+  shape shares and island gap in both runs;
+- and per continuous property how far the two runs' posterior medians lie apart, in the draws' own spread.
 
 The parts do not add exactly (an episode can need two swapped posteriors to flip). Only the episodes that hold a
 swapped image are scored again.
@@ -82,6 +83,25 @@ def shape_shares(posterior: CachedPosterior) -> np.ndarray:
     return np.bincount(classes, minlength=len(SHAPES)) / len(classes)
 
 
+def median_shifts(a: dict, b: dict, properties=("scale", "colour", "specular", "shininess")) -> dict:
+    """Per continuous property, how far the two runs' posterior medians of each image lie apart, in the draws' own
+    standard deviations (pooled over both runs; log scale for the size; the largest over a property's coordinates):
+    the median over images and the shares over 2 and over 5. Two runs of one posterior differ by a fraction of a
+    standard deviation; a size posterior that settled on another pose lies several away."""
+    out = {}
+    for name in properties:
+        z = []
+        for i in sorted(a):
+            x, y = (np.asarray(r[i].program.samples[name], np.float64) for r in (a, b))
+            if name == "scale":
+                x, y = np.log(x), np.log(y)
+            sd = np.sqrt((x.var(axis=0) + y.var(axis=0)) / 2) + 1e-9
+            z.append(float(np.max(np.abs(np.median(x, axis=0) - np.median(y, axis=0)) / sd)))
+        z = np.array(z)
+        out[name] = {"median": float(np.median(z)), "over_2": float(np.mean(z > 2)), "over_5": float(np.mean(z > 5))}
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("dataset", type=Path)
@@ -128,8 +148,12 @@ def main() -> None:
               + f"  {'/'.join(f'{p:.2f}' for p in shape_shares(a[i]))} -> "
               + f"{'/'.join(f'{p:.2f}' for p in shape_shares(b[i]))}"
               + f"  gap {a[i].island_gap:5.1f} -> {b[i].island_gap:5.1f}")
+    shifts = median_shifts(a, b)
+    print("\nposterior medians A against B, in the draws' standard deviations (median over images; shares over 2, 5):")
+    for name, v in shifts.items():
+        print(f"{name:10s} {v['median']:5.2f}  {v['over_2']:.2f}  {v['over_5']:.2f}")
     print(json.dumps({"cells": names, "a": base.tolist(), "moves": {k: v.tolist() for k, v in rows.items()},
-                      "shape_moved_images": moved}, indent=1))
+                      "shape_moved_images": moved, "median_shifts": shifts}, indent=1))
 
 
 if __name__ == "__main__":
