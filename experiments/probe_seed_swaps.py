@@ -29,10 +29,10 @@ import numpy as np
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
 from mitsuba_p3.benchmarks.episodes import sample_episodes
-from mitsuba_p3.concepts import ConceptSpread, ProtoProgram, classify_many
+from mitsuba_p3.concepts import ConceptSpread
 from mitsuba_p3.evaluate.config import EvaluationConfig
 from mitsuba_p3.evaluate.jobs import CachedPosterior, posterior_path
-from mitsuba_p3.evaluate.metrics import setting_name, test_settings
+from mitsuba_p3.evaluate.metrics import classify_episode, setting_name, test_settings
 from mitsuba_p3.evaluate.run import spread_file
 from mitsuba_p3.files import file_digest
 from mitsuba_p3.shapes import SHAPES
@@ -66,8 +66,7 @@ def episode_scores(dataset, posteriors: dict, spread, settings, config: Evaluati
             members = {i for shots in episode.support for i in shots} | {i for i, _ in episode.queries}
             if only is not None and not only & members:
                 continue
-            programs = [ProtoProgram.merge([cached[i].program for i in shots]) for shots in episode.support]
-            every = classify_many(programs, [cached[i].program for i, _ in episode.queries], config.distance)
+            every = classify_episode(cached, episode, config.distance)
             scores[e] = np.mean([np.argmax(p) == truth for (_, truth), p in zip(episode.queries, every)])
         out.append(scores)
     return out
@@ -132,7 +131,8 @@ def main() -> None:
         other_spread = ConceptSpread.from_json(json.loads(path.read_text()))
         rows[f"spread of {path.parent.name}"] = cells(score(a, other_spread)) - base
     moved = sorted(i for i in a if np.abs(shape_shares(a[i]) - shape_shares(b[i])).max() > args.moved)
-    rows["B's posteriors"] = cells(score({**a, **b}, spread_a)) - base
+    # with the same spread, B is already A with all of B's posteriors swapped in
+    rows["B's posteriors"] = rows["B"] if same_spread else cells(score({**a, **b}, spread_a)) - base
     rows[f"{len(moved)} shape-moved images"] = (cells(score({**a, **{i: b[i] for i in moved}}, spread_a,
                                                             only=set(moved), base=scores)) - base
                                                 if moved else np.zeros(len(settings)))

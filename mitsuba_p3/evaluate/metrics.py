@@ -56,14 +56,20 @@ def expected_calibration_error(confidence: np.ndarray, correct: np.ndarray, bins
     return float(ece), table
 
 
+def classify_episode(cached: dict, episode, distance: DistanceConfig) -> np.ndarray:
+    """(queries, classes) probabilities of one episode: each class's program merged from its support shots
+    (``cached``: image index -> an object with a ``program``)."""
+    programs = [ProtoProgram.merge([cached[i].program for i in shots]) for shots in episode.support]
+    return classify_many(programs, [cached[index].program for index, _ in episode.queries], distance)
+
+
 def classify_episodes(dataset: Dataset, cached: dict, n_way: int, k_shot: int, config) -> list[dict]:
     """Predictions for every query of the setting's episodes (``cached``: image index -> an object
     with a ``program``; ``config``: an :class:`~mitsuba_p3.evaluate.config.EvaluationConfig`)."""
     rows = []
     for number, episode in enumerate(sample_episodes(dataset, n_way, k_shot, config.episodes, config.episode_seed,
                                                      config.queries_per_class)):
-        programs = [ProtoProgram.merge([cached[i].program for i in shots]) for shots in episode.support]
-        every = classify_many(programs, [cached[index].program for index, _ in episode.queries], config.distance)
+        every = classify_episode(cached, episode, config.distance)
         for (index, truth), probabilities in zip(episode.queries, every):
             rows.append({"n_way": n_way, "k_shot": k_shot, "episode": number, "query": index, "truth": truth,
                          "predicted": int(np.argmax(probabilities)), "confidence": float(probabilities.max()),
