@@ -56,7 +56,7 @@ class EvaluationConfig:
         """The settings a cached posterior depends on."""
         key = {"renderer": self.renderer, "sampler": asdict(self.sampler), "keep_draws": self.keep_draws,
                "sigma": self.sigma, "noise": self.noise}
-        if self.noise == "fields":
+        if self.noise in ("fields", "scaled"):
             from ..fit.fields import POWER_ON
 
             key["fields_power_on"] = POWER_ON    # a folder of the fields' earlier form has none: refused

@@ -70,12 +70,34 @@ whole marginal to beta instead would temper the fields' prior too, as if their s
 tau / sqrt(beta), so that the object's field can paint a sphere's shading onto a flat disc
 for nearly nothing (docs/notebook.md, "The fields' power belongs to the pixels").
 
+**An image's own scale.** sigma and the taus are the train split's, but an image the
+model renders worse than its train images (a path tracer's metal, an object no primitive
+fits, lights the fit never saw) leaves residuals several times larger, and at the train
+scale every pose that explains a little more of them is then worth tens of nats: runs of
+the same hypothesis settle on different isolated poses and the seeds disagree
+(docs/notebook.md). The image's noise scale is therefore unknown, C = s^2 C_1 with C_1 =
+(sigma^2 / beta) I + B T B' as above, and integrated out under a conjugate inverse-gamma
+prior s^2 ~ IG(a, b):
+
+    log p(r) = log p_1(r) + q / 2 - (a + n / 2) log(b + q / 2) + a log b - log G(a) + log G(a + n / 2),
+
+with p_1 the density at s = 1, q = r' C_1^-1 r its quadratic form and n = beta x the
+window's values its effective count (the composite likelihood's: under the fitted model q
+is about n at the truth, so q / n is the window's own estimate of s^2). Two hypotheses of
+one image then differ by about (q_2 - q_1) / (2 s^2) where their forms are close: the
+evidence is tempered by the image's own misfit and not by the train split's, and where
+the image is rendered as well as the train images (q / n about the prior's s^2) the
+density is the fixed-scale one. The prior (a, b) maximises the marginal likelihood of the
+train windows' forms at the truth, each s^2 times a chi-square of n degrees of freedom
+(:func:`fit_scale`), so how much the scale may vary is the train split's, not a hand-set
+constant (:func:`scale_log_likelihood`; ``--noise scaled``).
+
 Everything here takes an array module ``xp`` (numpy for the fit, jax.numpy for the
 sampler), and batches over leading axes.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -113,6 +135,9 @@ class FieldsNoise:
     power: float               # 1 / the correlation area the fields leave
     window: tuple              # (height, width) of the windows it was fitted on
     channels: str = "independent"   # CHANNELS: how the fields load on r, g, b (module docstring)
+    # the inverse-gamma prior (shape, rate) of an image's noise scale s^2 (module docstring, "An image's own
+    # scale"), fitted on the same windows; None in models fitted before it
+    scale: tuple | None = None
 
     @property
     def white_sigma(self) -> float:
@@ -120,13 +145,15 @@ class FieldsNoise:
         return self.sigma / float(np.sqrt(self.power))
 
     def as_dict(self) -> dict:
-        return {**asdict(self), "taus": list(self.taus), "window": list(self.window)}
+        return {**asdict(self), "taus": list(self.taus), "window": list(self.window),
+                "scale": None if self.scale is None else list(self.scale)}
 
     @classmethod
     def from_dict(cls, d: dict) -> "FieldsNoise":
         return cls(sigma=float(d["sigma"]), taus=tuple(float(t) for t in d["taus"]), degree=int(d["degree"]),
                    power=float(d["power"]), window=tuple(int(v) for v in d["window"]),
-                   channels=str(d.get("channels", "independent")))
+                   channels=str(d.get("channels", "independent")),
+                   scale=None if d.get("scale") is None else tuple(float(v) for v in d["scale"]))
 
     def variances(self) -> np.ndarray:
         """(regions, K) tau^2 of every basis column (:func:`loadings`' columns)."""
@@ -275,10 +302,11 @@ def column_statistics(statistics: tuple, loading, xp=np) -> tuple:
 
 
 def marginal_log_likelihood(statistics: tuple, sigma: float, variances, xp=np, solved: bool = False,
-                            loading=None):
+                            loading=None, quadratic: bool = False):
     """log p(r) (...,) from :func:`field_statistics` under ``sigma`` and the fields' ``variances`` (R, K) of
     the columns of ``loading`` (K, k, 3; default: independent channels); with ``solved``, also the fields'
-    posterior means (..., R, K)."""
+    posterior means (..., R, K); with ``quadratic``, also r' C^-1 r (...,), C = sigma^2 I + B T B' (the
+    scale's sufficient statistic, :func:`scale_log_likelihood`)."""
     gram = statistics[1]
     if loading is None:
         loading = loadings(_degree_of(gram.shape[-1]))
@@ -290,21 +318,25 @@ def marginal_log_likelihood(statistics: tuple, sigma: float, variances, xp=np, s
     # det(I + T G / sigma^2) = det(T) det(M) / sigma^(2K) (no LAPACK call: :mod:`mitsuba_p3.small_linalg`)
     factor = cholesky(gram + (sigma ** 2 / variances)[..., None] * eye, xp)
     means = solve(factor, projected, xp)
-    quadratic = squares - xp.sum(projected * means, axis=(-2, -1))
+    form = (squares - xp.sum(projected * means, axis=(-2, -1))) / sigma ** 2
     logdet = xp.sum(xp.log(variances), axis=-1) + log_det(factor, xp) - size * np.log(sigma ** 2)   # (..., R)
-    value = (-0.5 * quadratic / sigma ** 2 - 0.5 * xp.sum(logdet, axis=-1)
-             - 0.5 * count * np.log(2 * np.pi * sigma ** 2))
-    return (value, means) if solved else value
+    value = -0.5 * form - 0.5 * xp.sum(logdet, axis=-1) - 0.5 * count * np.log(2 * np.pi * sigma ** 2)
+    if not (solved or quadratic):
+        return value
+    return (value,) + ((means,) if solved else ()) + ((form,) if quadratic else ())
 
 
-def field_log_likelihood(residual, masks, sigma: float, variances, basis, xp=np, left: bool = False, loading=None):
+def field_log_likelihood(residual, masks, sigma: float, variances, basis, xp=np, left: bool = False, loading=None,
+                         quadratic: bool = False):
     """log p(r) of residual windows (..., h, w, 3) whose region masks are ``masks`` (..., R, h, w) under
     the fields of ``variances`` (R, K) tau^2, ``basis`` (h, w, k) and ``loading`` (K, k, 3; default:
     independent channels) (module docstring) -> (...,). With ``left``, also the residual the fields'
-    posterior mean leaves (..., h, w, 3)."""
+    posterior mean leaves (..., h, w, 3); with ``quadratic`` (not with ``left``), also r' C^-1 r (...,)."""
     if loading is None:
         loading = loadings(_degree_of(np.shape(basis)[-1]))
     statistics = field_statistics(residual, masks, basis, xp)
+    if quadratic and not left:
+        return marginal_log_likelihood(statistics, sigma, variances, xp, loading=loading, quadratic=True)
     value, means = marginal_log_likelihood(statistics, sigma, variances, xp, solved=True, loading=loading)
     if not left:
         return value
@@ -312,6 +344,44 @@ def field_log_likelihood(residual, masks, sigma: float, variances, basis, xp=np,
     mean_field = xp.einsum("...rhw,hwm,...rjmc,...rj->...hwc", xp.asarray(masks, means.dtype),
                            xp.asarray(basis, means.dtype), loading, means)
     return value, xp.asarray(residual) - mean_field
+
+
+def scale_log_likelihood(value, form, count: float, scale: tuple, xp=np):
+    """log p(r) with the image's noise scale integrated out (module docstring, "An image's own scale"), from
+    the density at scale 1, ``value`` (...,), its quadratic form r' C^-1 r, ``form`` (...,), the window's
+    effective count of values ``count`` (power x values) and the scale's inverse-gamma prior ``scale``
+    (shape, rate)."""
+    from scipy.special import gammaln
+
+    shape, rate = (float(v) for v in scale)
+    half = 0.5 * float(count)
+    constant = shape * np.log(rate) - gammaln(shape) + gammaln(shape + half)
+    return value + 0.5 * form - (shape + half) * xp.log(rate + 0.5 * form) + constant
+
+
+def fit_scale(forms: np.ndarray, counts) -> tuple[float, float]:
+    """The inverse-gamma prior (shape, rate) of the noise scale s^2 that maximises the marginal likelihood
+    of the windows' quadratic forms ``forms`` (N,), each s^2 times a chi-square of ``counts`` (N,) effective
+    degrees of freedom (module docstring, "An image's own scale")."""
+    from scipy.optimize import minimize
+    from scipy.special import gammaln
+
+    forms = np.asarray(forms, np.float64)
+    half = 0.5 * np.broadcast_to(np.asarray(counts, np.float64), forms.shape)
+    if forms.size < 2 or not np.all(np.isfinite(forms) & (forms > 0)):
+        raise ValueError("the scale's prior is fitted on two or more windows with positive quadratic forms")
+
+    def negative(log_params):
+        shape, rate = np.exp(log_params)
+        return -float(np.sum(shape * np.log(rate) + gammaln(shape + half) - gammaln(shape) - gammaln(half)
+                             + (half - 1) * np.log(0.5 * forms) - (shape + half) * np.log(rate + 0.5 * forms)))
+
+    ratio = forms / (2 * half)                          # each window's own estimate of s^2
+    mean, var = float(np.mean(ratio)), float(np.var(ratio)) + 1e-12
+    shape = 2.0 + mean ** 2 / var                       # the moments' inverse gamma, where the optimiser starts
+    best = minimize(negative, np.log([shape, mean * (shape - 1)]), method="L-BFGS-B",
+                    bounds=[(np.log(1e-2), np.log(1e6))] * 2)
+    return tuple(float(v) for v in np.exp(best.x))
 
 
 def sample_fields(masks, variances, basis, rng: np.random.Generator, loading=None) -> np.ndarray:
@@ -364,7 +434,15 @@ def fit_fields(residuals: np.ndarray, masks: np.ndarray, degree: int = 1,
     _, left = field_log_likelihood(residuals, masks, noise.sigma, noise.variances(), basis, left=True, loading=loading)
     before, after = correlation_area(residuals), correlation_area(left)
     noise = FieldsNoise(noise.sigma, noise.taus, degree, 1.0 / after, (height, width), channels)
+    # each window's quadratic form at the likelihood's white scale gives the image's own scale (module docstring)
+    _, forms = marginal_log_likelihood(statistics, noise.white_sigma, noise.variances(), loading=loading,
+                                       quadratic=True)
+    count = noise.power * statistics[3]
+    noise = replace(noise, scale=fit_scale(forms, count))
+    ratios = forms / count
     figures = {"sigma": noise.sigma, "taus": list(noise.taus), "degree": degree, "channels": channels,
-               "power": noise.power, "correlation_area_window": before, "correlation_area_after_fields": after,
+               "power": noise.power, "scale": list(noise.scale),
+               "scale_ratio_quantiles": {str(q): float(np.quantile(ratios, q)) for q in (0.1, 0.5, 0.9, 0.99)},
+               "correlation_area_window": before, "correlation_area_after_fields": after,
                "log_likelihood_per_pixel": -float(best.fun) / (residuals.size / 3), "optimiser": str(best.message)}
     return noise, figures

@@ -27,7 +27,10 @@ wrong shade or the image's own lighting costs little while the outline and the o
 keep their evidence; beta, the power of the correlation the fields leave, tempers the pixels given
 the fields and not the fields' prior (a white scale sigma / sqrt(beta), power 1). This form
 needs each render's object pixels, which :class:`~mitsuba_p3.infer.model.PosteriorCore` traces from
-the pose (``objects`` of :func:`score`).
+the pose (``objects`` of :func:`score`). ``--noise scaled`` is the same form with the image's own
+noise scale integrated out under the prior the fit learnt from the train windows
+(:mod:`mitsuba_p3.fit.fields`, "An image's own scale"): an image the model renders worse than its
+train images has its evidence tempered by its own misfit.
 
 With eps = 0 and beta = 1 the first form is the paper's likelihood, sigma = 1.0 (0.35 on its
 dark set), a sum of truncated normals over every pixel and channel: the default
@@ -53,9 +56,10 @@ LIKELIHOODS = ("p3", "np3")
 # the same Gaussian at the composite likelihood's power along the pose; robust: the fitted inlier/outlier
 # mixture; spectral: the correlated Gaussian field fitted to the train residual windows; fields: the shading
 # fields on the hypothesis's own object, its shadow and the rest of the floor, marginalised
-# (:mod:`mitsuba_p3.fit.fields`); paper: sigma 1
+# (:mod:`mitsuba_p3.fit.fields`); scaled: the same fields with the image's noise scale integrated out
+# (:mod:`mitsuba_p3.fit.fields`, "An image's own scale"); paper: sigma 1
 # (:mod:`mitsuba_p3.fit.noise` says why fitted is Gaussian, and what each power is)
-NOISES = ("fitted", "sandwich", "robust", "spectral", "fields", "paper")
+NOISES = ("fitted", "sandwich", "robust", "spectral", "fields", "scaled", "paper")
 # the noise model infer, evaluate, reproduce and sbc use unless told otherwise, chosen on train classes
 # (experiments/select_smc.py --noise fitted|fields; docs/notebook.md, "Lights that move"): the shading
 # fields with the floor's region decide the shape at least as often as the fitted Gaussian on every world
@@ -79,6 +83,9 @@ class LikelihoodConfig:
     fields: tuple | None = None   # the shading fields' taus (region-major, degree 0..fields_degree); None: none
     fields_degree: int = 1
     fields_channels: str = "independent"   # how the fields load on r, g, b (mitsuba_p3.fit.fields.CHANNELS)
+    # the image's noise scale, integrated out: (the inverse-gamma prior's shape and rate, the effective count
+    # per value); None: the scale fixed at 1 (mitsuba_p3.fit.fields, "An image's own scale"; fields form only)
+    scale: tuple | None = None
 
     def __post_init__(self):
         from ..errors import ConfigError
@@ -112,6 +119,12 @@ class LikelihoodConfig:
                 raise ConfigError(str(exc)) from None
             if not all(np.isfinite(t) and t > 0 for t in self.fields):
                 raise ConfigError(f"the shading fields' scales must be positive; got {self.fields}")
+        if self.scale is not None:
+            if self.fields is None:
+                raise ConfigError("an image's own noise scale is integrated out under the shading fields' form only")
+            if len(self.scale) != 3 or not all(np.isfinite(v) and v > 0 for v in self.scale) or self.scale[2] > 1:
+                raise ConfigError(f"the noise scale needs a positive shape, rate and effective count per value "
+                                  f"(at most 1); got {self.scale}")
 
 
 def whiten(images, observation: dict, config: LikelihoodConfig):
@@ -237,13 +250,18 @@ def fields_log_likelihood(observed, renders, objects, empty, config: LikelihoodC
     regions of :func:`fields_masks`)."""
     import jax.numpy as jnp
 
-    from ..fit.fields import field_log_likelihood
+    from ..fit.fields import field_log_likelihood, scale_log_likelihood
 
     variances, basis, loading = fields_form(config, *renders.shape[-3:-1], colours=colours, xp=jnp)
     residual = jnp.asarray(observed)[None] - renders
     masks = fields_masks(renders, objects, empty, fields_regions(config))
-    return config.power * field_log_likelihood(residual, masks, config.sigma,
-                                               variances, basis, xp=jnp, loading=loading)
+    if config.scale is None:
+        return config.power * field_log_likelihood(residual, masks, config.sigma,
+                                                   variances, basis, xp=jnp, loading=loading)
+    value, form = field_log_likelihood(residual, masks, config.sigma, variances, basis, xp=jnp, loading=loading,
+                                       quadratic=True)
+    count = config.scale[2] * np.prod(renders.shape[-3:])
+    return config.power * scale_log_likelihood(value, form, count, config.scale[:2], xp=jnp)
 
 
 def score(observation: dict, renders, config: LikelihoodConfig, channels: list[Channel] | None = None,

@@ -199,7 +199,9 @@ def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | No
     - ``fields``: the same stage's shading fields on the hypothesis's object, its shadow and the rest of the
       floor, marginalised (:mod:`mitsuba_p3.fit.fields`: the fields' scales and channel loading as fitted,
       the power of the correlation they leave tempering the white part alone: sigma / sqrt(power), power 1),
-      hard shadows.
+      hard shadows;
+    - ``scaled``: the fields' form with the image's own noise scale integrated out under the prior the fit
+      learnt from the train windows (:mod:`mitsuba_p3.fit.fields`, "An image's own scale").
     """
     from ..errors import ConfigError
 
@@ -222,17 +224,22 @@ def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | No
                               f"mitsuba-p3 fit DATASET --out {fitted.root} --stages noise")
         return LikelihoodConfig(kind=kind, sigma=model.gaussian_sigma, power=model.spectral_power,
                                 shadows=model.shadows, spectral=True)
-    if noise == "fields":
+    if noise in ("fields", "scaled"):
         if model.fields is None:
             raise ConfigError(f"{fitted.root} has no shading fields' form; refit its noise stage: "
                               f"mitsuba-p3 fit DATASET --out {fitted.root} --stages noise")
         from ..fit.fields import FieldsNoise
 
         fields = FieldsNoise.from_dict(model.fields)
+        if noise == "scaled" and fields.scale is None:
+            raise ConfigError(f"{fitted.root}'s shading fields have no prior for an image's noise scale; refit its "
+                              f"noise stage: mitsuba-p3 fit DATASET --out {fitted.root} --stages noise")
+        scale = (*fields.scale, fields.power) if noise == "scaled" else None
         # the power tempers the pixels given the fields, not the fields' prior: the white part's variance
         # sigma^2 / power, the taus as fitted (mitsuba_p3.fit.fields, "The power")
         return LikelihoodConfig(kind=kind, sigma=fields.white_sigma, power=1.0, shadows=model.shadows,
-                                fields=fields.taus, fields_degree=fields.degree, fields_channels=fields.channels)
+                                fields=fields.taus, fields_degree=fields.degree, fields_channels=fields.channels,
+                                scale=scale)
     if model.gaussian_sigma is None:
         raise ConfigError(f"{fitted.root}/noise.json predates the Gaussian noise form; refit it with "
                           f"mitsuba-p3 fit DATASET --out {fitted.root} --stages noise")
