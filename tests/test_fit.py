@@ -721,6 +721,45 @@ def test_the_fields_power_tempers_the_pixels_and_leaves_the_fields_prior_as_fitt
     assert abs((whole[0] - whole[1]) - truth) > 1.0
 
 
+def test_an_images_own_noise_scale_is_integrated_out_under_a_prior_fitted_on_train_windows():
+    """``--noise scaled`` (:mod:`mitsuba_p3.fit.fields`, "An image's own scale"): the density at C = s^2 C_1,
+    n effective values, integrated over s^2 ~ IG(a, b) by quadrature, is :func:`scale_log_likelihood`; with a
+    prior that pins s^2 at 1 it is the fixed-scale density; an image whose best form is four times its count
+    has the evidence between two nearby hypotheses divided by about four, one at its count keeps it; the fit
+    recovers the prior of forms drawn from the model; the form round-trips through its dict, and a dict from
+    before the scale reads as none."""
+    from scipy.integrate import quad
+    from scipy.stats import invgamma
+
+    from mitsuba_p3.fit.fields import FieldsNoise, fit_scale, scale_log_likelihood
+
+    shape, rate, count, value, form = 5.0, 4.0, 300.0, -120.0, 420.0
+
+    def integrand(t):            # over t = log s^2, the Jacobian s^2
+        s2 = np.exp(t)
+        return np.exp(value + form / 2 - form / (2 * s2) - count / 2 * t - reference) * invgamma.pdf(s2, shape,
+                                                                                                   scale=rate) * s2
+    reference = value + form / 2 - count / 2 - count / 2 * np.log(form / count)     # the integrand's peak, about
+    exact = np.log(quad(integrand, -3.0, 3.0, points=[np.log(form / count)], limit=200)[0]) + reference
+    assert scale_log_likelihood(value, form, count, (shape, rate)) == pytest.approx(exact, abs=1e-6)
+    pinned = scale_log_likelihood(np.array([value, value - 30.0]), np.array([form, form + 60.0]), count, (1e7, 1e7))
+    assert pinned[0] - pinned[1] == pytest.approx(30.0, abs=0.01)
+    for ratio, divided in ((1.0, 1.0), (4.0, 4.0)):
+        forms = np.array([ratio * count, ratio * count + 20.0])      # 10 nats apart at scale 1
+        scaled = scale_log_likelihood(np.array([value, value - 10.0]), forms, count, (shape, rate))
+        assert scaled[0] - scaled[1] == pytest.approx(10.0 / divided, rel=0.1)
+    rng = np.random.default_rng(7)
+    s2 = invgamma.rvs(6.0, scale=5.0, size=3000, random_state=rng)
+    fitted = fit_scale(s2 * rng.chisquare(count, size=3000), count)
+    assert fitted == pytest.approx((6.0, 5.0), rel=0.15)
+    noise = FieldsNoise(0.02, (0.05, 0.1, 0.03, 0.1), 1, 0.03, (56, 72), "tinted", scale=fitted)
+    assert FieldsNoise.from_dict(noise.as_dict()) == noise
+    before = {k: v for k, v in noise.as_dict().items() if k != "scale"}
+    assert FieldsNoise.from_dict(before).scale is None
+    with pytest.raises(ValueError, match="positive"):
+        fit_scale(np.array([1.0, 0.0]), count)
+
+
 def test_shading_fields_forgive_a_wrong_shade_and_keep_the_outline():
     """Under the shading fields' form a render whose object is a shade off costs little, while the same
     object one pixel off (or absent) costs what the independent Gaussian charges, or more: the fields

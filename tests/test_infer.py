@@ -856,6 +856,61 @@ def test_the_shading_fields_likelihood_traces_the_object_it_scores(fitted):
             np.testing.assert_allclose(np.sqrt(np.diag(np.cov(many.T))), scale, rtol=0.1)
 
 
+def test_the_scaled_noise_integrates_the_images_scale_out_of_the_fields_density(fitted):
+    """Under ``--noise scaled`` the core's log likelihood is the fields' density with the image's noise scale
+    integrated out (:func:`~mitsuba_p3.fit.fields.scale_log_likelihood` of the fixed-scale density and its
+    quadratic form, n = the fitted power x the window's values) under the prior the fit learnt; an image twice
+    as noisy as the model's loses less between the truth and a pose 1 cm off than under the fixed scale; a
+    scale without the fields' form, or a scale from a folder fitted before it, is refused."""
+    from dataclasses import replace
+
+    import jax.numpy as jnp
+
+    from mitsuba_p3.errors import ConfigError
+    from mitsuba_p3.fit.fields import FieldsNoise, field_log_likelihood, scale_log_likelihood
+    from mitsuba_p3.infer.likelihood import LikelihoodConfig, fields_form, fields_masks, fields_regions
+    from mitsuba_p3.infer.model import PosteriorCore
+    from mitsuba_p3.infer.posterior import default_likelihood
+
+    form = FieldsNoise.from_dict(fitted.noise.fields)
+    assert form.scale is not None and all(v > 0 for v in form.scale)
+    likelihood = default_likelihood(fitted, "p3", noise="scaled")
+    fixed = default_likelihood(fitted, "p3", noise="fields")
+    assert likelihood == replace(fixed, scale=(*form.scale, form.power))
+    core, plain = (PosteriorCore(fitted, c, "mitsuba", 120, 160) for c in (likelihood, fixed))
+    image = make_renderer_image(fitted)
+    window = core.window_for(image, (48, 64))
+    observation = core.observe(image, window)
+    unconstrain = lambda x: jnp.asarray(fitted.prior.unconstrain(  # noqa: E731
+        {k: np.asarray(v)[None] for k, v in x.items() if k != "kappa"})[0], jnp.float32)
+    probabilities = np.array([0.001, 0.998, 0.001])                 # TRUTH's class
+    truth = unconstrain({**TRUTH, "class_probabilities": probabilities})
+    off = unconstrain({**TRUTH, "shift": TRUTH["shift"] + np.float32(0.01), "class_probabilities": probabilities})
+    render, objects = core._image(truth, observation)
+    colours = core.params(truth)["colour"][None]
+    variances, basis, loading = fields_form(fixed, *render.shape[:2], colours=colours, xp=jnp)
+    masks = fields_masks(render[None], objects[None], observation["empty"], fields_regions(fixed))
+    value, quadratic = field_log_likelihood(jnp.asarray(observation["image"])[None] - render[None], masks, fixed.sigma,
+                                            variances, basis, xp=jnp, loading=loading, quadratic=True)
+    count = form.power * render.size
+    expected = scale_log_likelihood(float(value[0]), float(quadratic[0]), count, form.scale)
+    assert float(core.log_likelihood(truth, observation)) == pytest.approx(expected, rel=1e-5)
+    assert float(plain.log_likelihood(truth, observation)) == pytest.approx(float(value[0]), rel=1e-5)
+    rng = np.random.default_rng(2)
+    noisy = np.clip(image + rng.normal(0, 2 * fitted.noise.gaussian_sigma, image.shape), 0, 1).astype(np.float32)
+    drops = {}
+    for name, c in (("scaled", core), ("fixed", plain)):
+        seen = c.observe(noisy, window)
+        drops[name] = float(c.log_likelihood(truth, seen) - c.log_likelihood(off, seen))
+    assert 0 < drops["scaled"] < 0.8 * drops["fixed"]
+    with pytest.raises(ConfigError, match="shading fields"):
+        LikelihoodConfig("p3", scale=(5.0, 4.0, 0.03))
+    before = replace(fitted.noise, fields={k: v for k, v in fitted.noise.fields.items() if k != "scale"})
+    monkeypatched = type("Fitted", (), {"noise": before, "root": fitted.root})()
+    with pytest.raises(ConfigError, match="refit its noise stage"):
+        default_likelihood(monkeypatched, "p3", noise="scaled")
+
+
 def test_a_scene_whose_object_leaves_the_window_has_likelihood_zero(fitted):
     """The window holds the object: the truth scores as the window's pixels say, the same scene moved
     off the window has log likelihood OUTSIDE_WINDOW (by the likelihood, the material move and the

@@ -15,6 +15,12 @@ Z_NP3 = Z_P3 E_P3[p_neural]: with P3's run before them the steps make one SMC sa
 prior to NP3's posterior, as unbiased as a run from the prior, and far cheaper when the neural
 term moves the posterior little, as on this project's data (a few nats beside colour terms of
 hundreds: one or two increments).
+
+The same steps bring in the image's own noise scale (``term="scale_weight"``; ``--noise scaled``,
+:mod:`mitsuba_p3.fit.fields`, "An image's own scale"): the SMC searches under the fixed-scale density
+p_1 and the bridge then tempers log p - log p_1 in, so that the search keeps the fixed scale's long
+ladder of temperatures (the scale's density is flat far from the object, where the walk finds it) and
+the evidence is the scaled density's.
 """
 from __future__ import annotations
 
@@ -27,43 +33,53 @@ from .smc_moves import kernels_for
 from .smc_moves import mover
 
 
-def bridge(core, observation, start, config, key, progress: Callable[[str, int, int], None] | None = None):
-    """NP3's rows from P3's ``start`` rows (:class:`~mitsuba_p3.infer.smc.Rows`, on the window P3
-    scored); ``core`` is NP3's. Returns the rows at NP3's posterior, their evidence NP3's."""
+def bridge(core, observation, start, config, key, progress: Callable[[str, int, int], None] | None = None,
+           term: str = "neural_weight"):
+    """The rows at ``core``'s posterior from ``start`` rows (:class:`~mitsuba_p3.infer.smc.Rows`, on the
+    window they scored) at its posterior without ``term``: NP3's from P3's (``neural_weight``; ``core`` is
+    NP3's), or the image's own noise scale's from the fixed scale's (``scale_weight``; ``core``'s likelihood
+    has a scale). Their evidence is ``core``'s."""
     import jax
     import jax.numpy as jnp
 
     from .smc import Rows, SMCState
 
-    if core.config.kind != "np3":
-        from ..errors import MitsubaP3Error
+    from ..errors import MitsubaP3Error
 
-        raise MitsubaP3Error("the bridge tempers the neural term in: it needs the np3 likelihood's core")
+    if term == "neural_weight":
+        if core.config.kind != "np3":
+            raise MitsubaP3Error("the bridge tempers the neural term in: it needs the np3 likelihood's core")
+        weight = np.float32(core.config.neural_weight)
+    elif term == "scale_weight":
+        if core.config.scale is None:
+            raise MitsubaP3Error("the scale's bridge needs a likelihood with the image's own noise scale")
+        weight = np.float32(1.0)
+    else:
+        raise MitsubaP3Error(f"the bridge tempers in neural_weight or scale_weight; got {term!r}")
     kernels = kernels_for(core, config)
     index = jnp.asarray(start.index, jnp.int32)
-    weight = np.float32(core.config.neural_weight)
-    weighted = lambda w: {**observation, "neural_weight": np.float32(w)}  # noqa: E731
+    weighted = lambda w: {**observation, term: np.float32(w)}  # noqa: E731
 
     def split(z):
-        """(neural term, log prior + colour term, log prior) of particles z: one render each."""
-        colour, whole, logprior = (np.asarray(a, np.float64) for a in kernels.parts(jnp.asarray(z), index,
-                                                                                     weighted(weight)))
-        return whole - colour, logprior + colour, logprior
+        """(the term, log prior + the rest of the log likelihood, log prior) of particles z: one render each."""
+        rest, whole, logprior = (np.asarray(a, np.float64) for a in kernels.parts(jnp.asarray(z), index,
+                                                                                  weighted(weight), term=term))
+        return whole - rest, logprior + rest, logprior
 
     def move(key, state: tempering.TemperedState):
         lam = float(state.tempering[0])
         logprior = np.asarray(kernels.prior(jnp.asarray(state.position), index), np.float64)
-        colour = state.logprior - logprior
-        at_lambda = state._replace(loglikelihood=(colour + lam * state.loglikelihood).astype(np.float32),
+        rest = state.logprior - logprior
+        at_lambda = state._replace(loglikelihood=(rest + lam * state.loglikelihood).astype(np.float32),
                                    logprior=logprior.astype(np.float32))
         sweeps = config.mcmc_steps + (config.final_steps if lam >= 1.0 else 0)
         moved, acceptance = mover(kernels, index, weighted(lam * weight), sweeps, config.material_every,
                                   np.ones(len(index)))(key, at_lambda)
-        neural, base, _ = split(moved.position)
-        return moved._replace(loglikelihood=neural.astype(np.float32), logprior=base.astype(np.float32)), acceptance
+        tempered, base, _ = split(moved.position)
+        return moved._replace(loglikelihood=tempered.astype(np.float32), logprior=base.astype(np.float32)), acceptance
 
-    neural, base, _ = split(start.state.position)
-    state = tempering.init(start.state.position, neural, base, log_evidence=start.log_evidence)
+    tempered, base, _ = split(start.state.position)
+    state = tempering.init(start.state.position, tempered, base, log_evidence=start.log_evidence)
     steps = []
     while state.tempering[0] < 1.0 and len(steps) < config.max_temperatures:
         key, k_step = jax.random.split(key)

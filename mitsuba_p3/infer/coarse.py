@@ -45,7 +45,8 @@ def coarse_view(core, observation: dict, image: np.ndarray, factor: int):
         return None
     power = min(1.0, core.config.power * factor ** 2)
     sigma = core.config.sigma * np.sqrt(power / (core.config.power * factor ** 2))
-    likelihood = replace(core.config, kind="p3", power=power, sigma=float(sigma))
+    # (the image's own scale is bridged in after the search, mitsuba_p3.infer.smc: the coarse start scores without it)
+    likelihood = replace(core.config, kind="p3", power=power, sigma=float(sigma), scale=None)
     coarse = PosteriorCore.shared(core.fitted, likelihood, core.renderer_kind, height // factor, width // factor)
     small = downsample(image, factor)
     if "window" not in observation:

@@ -244,10 +244,12 @@ def fields_form(config: LikelihoodConfig, height: int, width: int, colours=None,
     return noise.variances(), monomials(height, width, config.fields_degree), loading
 
 
-def fields_log_likelihood(observed, renders, objects, empty, config: LikelihoodConfig, colours=None):
+def fields_log_likelihood(observed, renders, objects, empty, config: LikelihoodConfig, colours=None,
+                          scale_weight=1.0):
     """The shading fields' log likelihood of renders (B, h, w, 3) whose object covers ``objects`` (B, h, w)
     and, for tinted fields, is of colour ``colours`` (B, 3) -> (B,) (:mod:`mitsuba_p3.fit.fields`; the
-    regions of :func:`fields_masks`)."""
+    regions of :func:`fields_masks`). With ``config.scale``, the image's noise scale integrated out, at
+    ``scale_weight`` w of the way from the fixed-scale density: (1 - w) log p_1 + w log p (the SMC's bridge)."""
     import jax.numpy as jnp
 
     from ..fit.fields import field_log_likelihood, scale_log_likelihood
@@ -261,14 +263,16 @@ def fields_log_likelihood(observed, renders, objects, empty, config: LikelihoodC
     value, form = field_log_likelihood(residual, masks, config.sigma, variances, basis, xp=jnp, loading=loading,
                                        quadratic=True)
     count = config.scale[2] * np.prod(renders.shape[-3:])
-    return config.power * scale_log_likelihood(value, form, count, config.scale[:2], xp=jnp)
+    scaled = scale_log_likelihood(value, form, count, config.scale[:2], xp=jnp)
+    return config.power * (value + scale_weight * (scaled - value))
 
 
 def score(observation: dict, renders, config: LikelihoodConfig, channels: list[Channel] | None = None,
           objects=None, colours=None):
     """(B, H, W, 3) renders -> (B,) log-likelihoods of ``observation`` (JAX). An observation's own
     ``neural_weight`` entry, a number the compiled sampler takes as an argument, overrides the
-    config's: the SMC's bridge from P3 to NP3 tempers the neural term in by it. The shading fields'
+    config's: the SMC's bridge from P3 to NP3 tempers the neural term in by it; its ``scale_weight``
+    does the same for the image's own noise scale (:func:`fields_log_likelihood`). The shading fields'
     form also needs the pixels each render's object covers, ``objects`` (B, H, W), and tinted fields
     the object's colour parameter, ``colours`` (B, 3)."""
     if config.fields is not None:
@@ -277,7 +281,7 @@ def score(observation: dict, renders, config: LikelihoodConfig, channels: list[C
 
             raise ConfigError("the shading fields' likelihood needs the renders' object pixels")
         log_lik = fields_log_likelihood(observation["image"], renders, objects, observation["empty"], config,
-                                        colours)
+                                        colours, observation.get("scale_weight", 1.0))
     elif config.spectral:
         log_lik = spectral_log_likelihood(observation["image"], renders, observation, config)
     else:

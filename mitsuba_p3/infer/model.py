@@ -187,18 +187,21 @@ class PosteriorCore(MaterialMoves):
         """The score of z's render alone, without the window's term (the empty floor's evidence needs it)."""
         return self._score(*self._image(z, observation), observation, z)
 
-    def log_likelihoods(self, z, observation, parts: bool = False):
-        """:meth:`log_likelihood` of many positions z (B, 15) -> (B,), or with ``parts``
-        :meth:`log_likelihood_parts`'s (colour, whole) pair: the B renders in one batch (one
-        callback), their scores in chunks that stay in the CPU's cache (:mod:`~mitsuba_p3.infer.chunks`)."""
+    def log_likelihoods(self, z, observation, parts: bool | str = False):
+        """:meth:`log_likelihood` of many positions z (B, 15) -> (B,), or with ``parts`` the pair (the score
+        with the observation's weight ``parts`` at 0, the whole): ``neural_weight`` (or True), NP3's bridge
+        (:meth:`log_likelihood_parts`), or ``scale_weight``, the image's own noise scale's bridge
+        (:mod:`mitsuba_p3.infer.smc`). The B renders in one batch (one callback), their scores in chunks
+        that stay in the CPU's cache (:mod:`~mitsuba_p3.infer.chunks`)."""
         import jax
 
         image, objects = jax.vmap(lambda p: self._image(p, observation))(z)
         term = jax.vmap(lambda p: self.window_log_term(p, observation))(z)
+        weight = "neural_weight" if parts is True else parts
 
         def one(image, objects, p):
             if parts:
-                return (self._score(image, objects, {**observation, "neural_weight": 0.0}, p),
+                return (self._score(image, objects, {**observation, weight: 0.0}, p),
                         self._score(image, objects, observation, p))
             return self._score(image, objects, observation, p)
 

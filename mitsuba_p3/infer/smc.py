@@ -58,6 +58,13 @@ specular weight keeps the prior's two-component mixture; p(shiny | h, I) is the 
 share above the prior's threshold). ``kinds=True`` makes shape x material kind six hypotheses
 of their own instead (twice the cost).
 
+**An image's own noise scale.** Under ``--noise scaled`` (:mod:`mitsuba_p3.fit.fields`, "An image's own
+scale") every run tempers the fixed-scale density and then bridges the scale in
+(:mod:`mitsuba_p3.infer.bridge`): the scale's density is flat far from the object, so tempering it from the
+prior takes a third fewer temperatures and the walk has fewer sweeps to find the pose in (on ood's images
+the island gaps grew; docs/notebook.md, "An image's own noise scale"). The decision between rounds reads the
+bridged evidence.
+
 **NP3 from P3's posterior.** NP3's run starts from P3's final particles of the same image and
 tempers only the neural term in (:mod:`mitsuba_p3.infer.bridge`); ``bridge=False`` runs NP3 from
 the prior like P3.
@@ -233,13 +240,22 @@ def _rounds(core, observation, image, space: Hypotheses, config: SMCConfig, rng,
     """Round 1: islands x every hypothesis; later rounds: islands x those still in contention."""
     import jax
 
+    from .bridge import bridge
+
+    scaled = core.config.scale is not None and "scale_weight" not in observation
     count = len(space.names)
     contenders, parts = np.arange(count), []
     for round_ in range(config.rounds):
         key, k_round = jax.random.split(key)
-        part = temper(core, observation, np.tile(contenders, config.islands), config, rng, k_round, progress, image)
+        # with the image's own noise scale, the search runs under the fixed scale and the scale is bridged in
+        searched = {**observation, "scale_weight": np.float32(0.0)} if scaled else observation
+        part = temper(core, searched, np.tile(contenders, config.islands), config, rng, k_round, progress, image)
         # a stream of its own, so that the runs themselves are what they are without the importance estimate
-        parts.append(with_importance(core, observation, part, config, np.random.default_rng([config.seed, 2, round_])))
+        part = with_importance(core, searched, part, config, np.random.default_rng([config.seed, 2, round_]))
+        if scaled:
+            key, k_bridge = jax.random.split(key)
+            part = bridge(core, observation, part, config, k_bridge, progress, term="scale_weight")
+        parts.append(part)
         rows = _joined(parts)
         pooled = pooled_evidence(rows, count)
         low, high = island_range(rows, count)

@@ -98,9 +98,9 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str, cha
     def score(z, index, observation):
         return loglik_all(z, observation), logprior_all(z, index)
 
-    @jax.jit
-    def parts(z, index, observation):
-        colour, whole = core.log_likelihoods(z.reshape(-1, z.shape[-1]), observation, parts=True)
+    @functools.partial(jax.jit, static_argnames="term")
+    def parts(z, index, observation, term="neural_weight"):
+        colour, whole = core.log_likelihoods(z.reshape(-1, z.shape[-1]), observation, parts=term)
         return colour.reshape(z.shape[:2]), whole.reshape(z.shape[:2]), logprior_all(z, index)
 
     @jax.jit
