@@ -4,8 +4,11 @@ Two evaluations of the same data set share their episodes (a pure function of th
 evaluation's seed), so a difference between them is paired: per episode, B's accuracy minus A's. This
 prints for every few-shot setting both accuracies and the paired difference with its 95% bootstrap
 interval over episodes (a cell that moved by less than that interval moved by sampling alone), and
-both runs' attribute accuracies. It refuses two runs whose episodes differ (another data set, another
-episode seed):
+both runs' attribute accuracies, and, where both keep their posteriors (``posteriors/MODEL/*.npz``), how
+far the posteriors of the images both sampled agree: the share whose modal shape is the same, those whose
+shape shares moved by more than 0.3, each run's island gap (median, 90th percentile, share over 10 nats),
+its temperatures and seconds per posterior. It refuses two runs whose episodes differ (another data set,
+another episode seed):
 
     python scripts/compare_evaluations.py results/eval-fsclvr-s1 results/eval-fsclvr-tinted [--model p3]
 """
@@ -18,6 +21,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
+from mitsuba_p3.shapes import SHAPES
 
 ATTRIBUTES = ("shape", "material", "size", "colour")
 
@@ -54,6 +59,32 @@ def attribute_accuracy(path: Path, model: str) -> dict[str, float]:
     return {a: 100 * float(np.mean([r[f"{a}_true"] == r[f"{a}_decided"] for r in rows])) for a in ATTRIBUTES}
 
 
+def posterior_agreement(a: Path, b: Path, model: str) -> list[str] | None:
+    """Lines on the cached posteriors both runs hold (module docstring); None where they share none."""
+    folders = [run / "posteriors" / model for run in (a, b)]
+    images = sorted(set.intersection(*({p.stem for p in folder.glob("*.npz")} for folder in folders)))
+    if not images:
+        return None
+    cached = [[np.load(folder / f"{image}.npz") for image in images] for folder in folders]
+
+    def shares(posterior) -> np.ndarray:
+        classes = np.asarray(posterior["sample_class"], int)
+        return np.bincount(classes, minlength=len(SHAPES)) / len(classes)
+
+    pairs = [(shares(x), shares(y)) for x, y in zip(*cached)]
+    agree = np.mean([x.argmax() == y.argmax() for x, y in pairs])
+    moved = [int(image) for image, (x, y) in zip(images, pairs) if np.abs(x - y).max() > 0.3]
+    lines = [f"posteriors of {len(images)} images: modal shape the same in {100 * agree:.1f}%, shape shares moved by "
+             f"> 0.3 on {len(moved)}: {moved}"]
+    for name, run in zip("AB", cached):
+        gaps = np.array([float(p["island_gap"]) for p in run])
+        lines.append(f"{name}: island gap median {np.median(gaps):.2f}, p90 {np.quantile(gaps, 0.9):.1f}, > 10 nats "
+                     f"{100 * np.mean(gaps > 10):.0f}%; temperatures median "
+                     f"{np.median([int(p['particles_temperatures']) for p in run]):.0f}; seconds per posterior mean "
+                     f"{np.mean([float(p['seconds']) for p in run]):.1f}")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("a", type=Path, help="the first evaluation's output folder (its predictions.csv)")
@@ -76,6 +107,8 @@ def main(argv: list[str] | None = None) -> None:
               f"[{low:+.1f}, {high:+.1f}] over {len(a)} episodes")
     attrs = [attribute_accuracy(folder / "attributes.csv", args.model) for folder in (args.a, args.b)]
     print("attributes (A -> B): " + ", ".join(f"{k} {attrs[0][k]:.1f} -> {attrs[1][k]:.1f}" for k in ATTRIBUTES))
+    for line in posterior_agreement(args.a, args.b, args.model) or []:
+        print(line)
 
 
 if __name__ == "__main__":

@@ -1291,6 +1291,43 @@ def test_a_coarse_start_scores_at_half_the_resolution_then_changes_to_the_full_l
     np.testing.assert_allclose(rows.state.loglikelihood, np.asarray(final), rtol=1e-5, atol=1e-2)
 
 
+def test_the_scaled_noise_searches_under_the_fixed_scale_and_bridges_the_scale_in(fitted):
+    """Under ``--noise scaled`` a run is the fixed scale's run followed by the scale's bridge
+    (:mod:`mitsuba_p3.infer.smc`, "An image's own noise scale"): the same search under scale_weight 0
+    (the fields' density), then each run's log evidence grows by log mean exp(log p - log p_1) over its final
+    particles (one step, a low ESS target); the bridge refuses a likelihood without a scale."""
+    import jax
+    import jax.numpy as jnp
+
+    from mitsuba_p3.errors import MitsubaP3Error
+    from mitsuba_p3.infer.bridge import bridge
+    from mitsuba_p3.infer.model import PosteriorCore
+    from mitsuba_p3.infer.posterior import default_likelihood
+    from mitsuba_p3.infer.smc import SMCConfig, sample_smc
+
+    rng = np.random.default_rng(4)
+    observed = make_renderer_image(fitted)
+    noisy = np.clip(observed + rng.normal(0, 2 * fitted.noise.gaussian_sigma, observed.shape), 0, 1).astype(np.float32)
+    config = SMCConfig(particles=8, mcmc_steps=1, final_steps=1, draws=40, window=None, target_ess=1e-6,
+                       wide_steps=0, rounds=1, importance=0)
+    scaled = PosteriorCore(fitted, default_likelihood(fitted, "p3", noise="scaled"), "mitsuba", 120, 160)
+    fixed = PosteriorCore(fitted, default_likelihood(fitted, "p3", noise="fields"), "mitsuba", 120, 160)
+    observation = scaled.observe(noisy)
+    search = sample_smc(fixed, fixed.observe(noisy), config).particles.rows
+    searched = sample_smc(scaled, {**observation, "scale_weight": np.float32(0.0)}, config).particles.rows
+    np.testing.assert_allclose(searched.log_evidence, search.log_evidence, rtol=1e-6)
+    run = sample_smc(scaled, observation, config).particles.rows
+    assert run.temperatures == search.temperatures + 1
+    z = jnp.asarray(search.state.position)
+    whole = np.stack([np.asarray(scaled.log_likelihoods(row, observation)) for row in z])
+    difference = whole - search.state.loglikelihood
+    assert np.ptp(difference) > 0
+    expected = search.log_evidence + np.logaddexp.reduce(difference, axis=1) - np.log(z.shape[1])
+    np.testing.assert_allclose(run.log_evidence, expected, rtol=2e-6, atol=1e-2)
+    with pytest.raises(MitsubaP3Error, match="noise scale"):
+        bridge(fixed, observation, search, config, jax.random.PRNGKey(0), term="scale_weight")
+
+
 def test_bridge_from_p3_adds_the_neural_terms_evidence(fitted):
     """The bridge from P3's particles to NP3 (:func:`mitsuba_p3.infer.bridge.bridge`): with a neural weight
     of zero it changes no evidence and takes one step; with the real weight and one step (a low ESS

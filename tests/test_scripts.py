@@ -288,6 +288,19 @@ def test_compare_evaluations_pairs_two_runs_episode_by_episode(tmp_path, capsys)
     printed = capsys.readouterr().out
     assert "5-way 1-shot:  50.0 ->  75.0, paired difference +25.0" in printed
     assert "material 0.0 -> 0.0" in printed and "shape 100.0 -> 100.0" in printed
+    assert "posteriors of" not in printed                 # no cached posteriors: nothing said of them
+    # cached posteriors: image 1's modal shape moves from sphere to cube, image 2's shares by 0.25 only
+    for name, classes in (("a", ([0, 0, 0, 1], [2, 2, 2, 2])), ("b", ([1, 1, 1, 0], [2, 2, 2, 1]))):
+        folder = tmp_path / name / "posteriors" / "p3"
+        folder.mkdir(parents=True)
+        for image, (drawn, gap) in enumerate(zip(classes, (2.0, 12.0)), start=1):
+            np.savez(folder / f"{image:05d}.npz", sample_class=np.array(drawn, np.int8), island_gap=np.float64(gap),
+                     particles_temperatures=np.int64(15 + image), seconds=np.float64(10.0 * image))
+    compare.main([str(tmp_path / "a"), str(tmp_path / "b")])
+    printed = capsys.readouterr().out
+    assert "posteriors of 2 images: modal shape the same in 50.0%, shape shares moved by > 0.3 on 1: [1]" in printed
+    assert "A: island gap median 7.00, p90 11.0, > 10 nats 50%; temperatures median 16; seconds per posterior " \
+           "mean 15.0" in printed
     (tmp_path / "b" / "run.json").write_text(json.dumps({"labels_digest": "other"}))
     with pytest.raises(SystemExit):
         compare.main([str(tmp_path / "a"), str(tmp_path / "b")])

@@ -58,12 +58,8 @@ specular weight keeps the prior's two-component mixture; p(shiny | h, I) is the 
 share above the prior's threshold). ``kinds=True`` makes shape x material kind six hypotheses
 of their own instead (twice the cost).
 
-**An image's own noise scale.** Under ``--noise scaled`` (:mod:`mitsuba_p3.fit.fields`, "An image's own
-scale") every run tempers the fixed-scale density and then bridges the scale in
-(:mod:`mitsuba_p3.infer.bridge`): the scale's density is flat far from the object, so tempering it from the
-prior takes a third fewer temperatures and the walk has fewer sweeps to find the pose in (on ood's images
-the island gaps grew; docs/notebook.md, "An image's own noise scale"). The decision between rounds reads the
-bridged evidence.
+**An image's own noise scale** (``--noise scaled``): each run searches under the fixed scale, then bridges
+the scale in (:mod:`mitsuba_p3.infer.bridge`, which says why); the rounds' decision reads the bridged evidence.
 
 **NP3 from P3's posterior.** NP3's run starts from P3's final particles of the same image and
 tempers only the neural term in (:mod:`mitsuba_p3.infer.bridge`); ``bridge=False`` runs NP3 from
