@@ -42,9 +42,8 @@ def bridge(core, observation, start, config, key, progress: Callable[[str, int, 
     import jax
     import jax.numpy as jnp
 
-    from .smc import Rows, SMCState
-
     from ..errors import MitsubaP3Error
+    from .smc import Rows, SMCState
 
     if term == "neural_weight":
         if core.config.kind != "np3":
