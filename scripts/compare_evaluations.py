@@ -7,8 +7,8 @@ interval over episodes (a cell that moved by less than that interval moved by sa
 both runs' attribute accuracies, and, where both keep their posteriors (``posteriors/MODEL/*.npz``), how
 far the posteriors of the images both sampled agree: the share whose modal shape is the same, those whose
 shape shares moved by more than 0.3, each run's island gap (median, 90th percentile, share over 10 nats),
-its temperatures and seconds per posterior. It refuses two runs whose episodes differ (another data set,
-another episode seed):
+its temperatures and seconds per posterior (``--posteriors-only``: that alone, for a run still sampling). It
+refuses two runs whose episodes differ (another data set, another episode seed):
 
     python scripts/compare_evaluations.py results/eval-fsclvr-s1 results/eval-fsclvr-tinted [--model p3]
 """
@@ -90,7 +90,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("a", type=Path, help="the first evaluation's output folder (its predictions.csv)")
     parser.add_argument("b", type=Path, help="the second")
     parser.add_argument("--model", default="p3")
+    parser.add_argument("--posteriors-only", action="store_true",
+                        help="compare only the cached posteriors both hold (runs still sampling have no episodes yet)")
     args = parser.parse_args(argv)
+    if args.posteriors_only:
+        print("\n".join(posterior_agreement(args.a, args.b, args.model) or ["no cached posteriors in common"]))
+        return
     labels = [json.loads((folder / "run.json").read_text()).get("labels_digest") for folder in (args.a, args.b)]
     if labels[0] != labels[1]:
         sys.exit("error: the two runs evaluated different data sets (their run.json's labels_digest differ): "

@@ -301,6 +301,11 @@ def test_compare_evaluations_pairs_two_runs_episode_by_episode(tmp_path, capsys)
     assert "posteriors of 2 images: modal shape the same in 50.0%, shape shares moved by > 0.3 on 1: [1]" in printed
     assert "A: island gap median 7.00, p90 11.0, > 10 nats 50%; temperatures median 16; seconds per posterior " \
            "mean 15.0" in printed
+    (tmp_path / "b" / "predictions.csv").unlink()          # a run still sampling: its posteriors alone
+    compare.main([str(tmp_path / "a"), str(tmp_path / "b"), "--posteriors-only"])
+    printed = capsys.readouterr().out
+    assert printed.startswith("posteriors of 2 images") and "paired difference" not in printed
+    (tmp_path / "b" / "predictions.csv").write_text((tmp_path / "a" / "predictions.csv").read_text())
     (tmp_path / "b" / "run.json").write_text(json.dumps({"labels_digest": "other"}))
     with pytest.raises(SystemExit):
         compare.main([str(tmp_path / "a"), str(tmp_path / "b")])
