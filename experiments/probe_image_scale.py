@@ -20,10 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from mitsuba_p3.benchmarks.dataset import load_dataset
-from mitsuba_p3.evaluate.jobs import posterior_path
-from mitsuba_p3.fit.fields import field_log_likelihood
 from mitsuba_p3.fit.model import FittedModel
-from mitsuba_p3.infer.likelihood import fields_form, fields_masks, fields_regions
+from mitsuba_p3.infer.likelihood import fields_parts
 from mitsuba_p3.infer.model import PosteriorCore
 from mitsuba_p3.infer.posterior import default_likelihood
 
@@ -39,14 +37,9 @@ def image_scale(core: PosteriorCore, observed: np.ndarray, cached) -> tuple[floa
     window = tuple(int(v) for v in cached["particles_window"])
     observation = core.observe(observed, window=window if window[2] > 0 else None)
     image, objects = core._image(z, observation)
-    config = core.config
-    colours = core.params(z)["colour"][None]
-    variances, basis, loading = fields_form(config, *image.shape[:2], colours=colours, xp=jnp)
-    residual = jnp.asarray(observation["image"])[None] - image[None]
-    masks = fields_masks(image[None], objects[None], observation["empty"], fields_regions(config))
-    _, form = field_log_likelihood(residual, masks, config.sigma, variances, basis, xp=jnp, loading=loading,
-                                   quadratic=True)
-    return float(form[0]), float(config.scale[2] * np.prod(image.shape))
+    _, form = fields_parts(observation["image"], image[None], objects[None], observation["empty"], core.config,
+                           core.params(z)["colour"][None])
+    return float(form[0]), float(core.config.scale[2] * np.prod(image.shape))
 
 
 def misfits(run: Path) -> dict[int, float]:

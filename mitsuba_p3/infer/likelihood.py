@@ -244,6 +244,20 @@ def fields_form(config: LikelihoodConfig, height: int, width: int, colours=None,
     return noise.variances(), monomials(height, width, config.fields_degree), loading
 
 
+def fields_parts(observed, renders, objects, empty, config: LikelihoodConfig, colours=None):
+    """(the fields' density at the fixed scale (B,), its quadratic form r' C_1^-1 r (B,)) of renders (B, h, w, 3)
+    (:func:`fields_log_likelihood`'s arguments; the form is what the image's own scale reads)."""
+    import jax.numpy as jnp
+
+    from ..fit.fields import field_log_likelihood
+
+    variances, basis, loading = fields_form(config, *renders.shape[-3:-1], colours=colours, xp=jnp)
+    residual = jnp.asarray(observed)[None] - renders
+    masks = fields_masks(renders, objects, empty, fields_regions(config))
+    return field_log_likelihood(residual, masks, config.sigma, variances, basis, xp=jnp, loading=loading,
+                                quadratic=True)
+
+
 def fields_log_likelihood(observed, renders, objects, empty, config: LikelihoodConfig, colours=None,
                           scale_weight=1.0):
     """The shading fields' log likelihood of renders (B, h, w, 3) whose object covers ``objects`` (B, h, w)
@@ -252,16 +266,11 @@ def fields_log_likelihood(observed, renders, objects, empty, config: LikelihoodC
     ``scale_weight`` w of the way from the fixed-scale density: (1 - w) log p_1 + w log p (the SMC's bridge)."""
     import jax.numpy as jnp
 
-    from ..fit.fields import field_log_likelihood, scale_log_likelihood
+    from ..fit.fields import scale_log_likelihood
 
-    variances, basis, loading = fields_form(config, *renders.shape[-3:-1], colours=colours, xp=jnp)
-    residual = jnp.asarray(observed)[None] - renders
-    masks = fields_masks(renders, objects, empty, fields_regions(config))
+    value, form = fields_parts(observed, renders, objects, empty, config, colours)
     if config.scale is None:
-        return config.power * field_log_likelihood(residual, masks, config.sigma,
-                                                   variances, basis, xp=jnp, loading=loading)
-    value, form = field_log_likelihood(residual, masks, config.sigma, variances, basis, xp=jnp, loading=loading,
-                                       quadratic=True)
+        return config.power * value
     count = config.scale[2] * np.prod(renders.shape[-3:])
     scaled = scale_log_likelihood(value, form, count, config.scale[:2], xp=jnp)
     return config.power * (value + scale_weight * (scaled - value))
