@@ -256,6 +256,24 @@ def test_a_run_folder_of_the_fields_earlier_form_is_refused(bench, tmp_path):
         check_run(tmp_path, dataset, bench / "model", config)
 
 
+def test_a_run_folder_of_the_scaled_noises_first_form_is_refused(bench, tmp_path):
+    """Posteriors cached when the image's own scale was tempered in from the prior (their run.json names no
+    ``scale_form``) are not resumed under today's bridged form; the fixed scale's folders do not carry the key."""
+    dataset = load_dataset(bench / "data")
+    assert "scale_form" not in EvaluationConfig(likelihoods=("p3",), sampler=TINY, noise="fields").cache_key()
+    config = EvaluationConfig(likelihoods=("p3",), sampler=TINY, noise="scaled")
+    check_run(tmp_path, dataset, bench / "model", config)
+    (tmp_path / "posteriors" / "p3").mkdir(parents=True)
+    (tmp_path / "posteriors" / "p3" / "0.npz").write_bytes(b"")
+    check_run(tmp_path, dataset, bench / "model", config)                  # today's form resumes
+    record = json.loads((tmp_path / "run.json").read_text())
+    assert record["scale_form"] == "bridged"
+    del record["scale_form"]
+    (tmp_path / "run.json").write_text(json.dumps(record))
+    with pytest.raises(EvaluationError, match="scale_form"):
+        check_run(tmp_path, dataset, bench / "model", config)
+
+
 def test_a_run_with_tuple_settings_resumes(bench, tmp_path):
     """Settings that are tuples (the SMC's window) read back from run.json as lists: a rerun with the
     same settings over cached posteriors resumes rather than being refused as 'other settings'."""
