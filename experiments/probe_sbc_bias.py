@@ -89,7 +89,7 @@ def main() -> None:
     core = model_core(args.model, "mitsuba", (120, 160), args.noise)
     truths, differ = [], []
     for i in range(len(ranks)):
-        image, x, cls, z, _ = _simulate(core, np.random.default_rng([seed, i]))
+        image, x, cls, z, *_ = _simulate(core, np.random.default_rng([seed, i]))
         if cls != classes[i]:
             raise SystemExit(f"simulation {i}: class {cls} drawn, the cache has {classes[i]}: another model or seed")
         truths.append(np.concatenate([checked_values(x), [float(x["theta"]) % (np.pi / 2)]]))

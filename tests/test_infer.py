@@ -1559,6 +1559,37 @@ def test_sbc_of_the_shading_fields_simulates_fields_on_the_window_the_sampler_sc
     assert result.ranks.shape == (1, 8) and 0 <= result.ranks.min() and result.ranks.max() <= 9
 
 
+def test_sbc_of_the_scaled_noise_draws_each_images_scale_from_its_prior(fitted):
+    """SBC under ``--noise scaled`` simulates from the scaled model: each image's scale s^2 drawn from the fitted
+    inverse-gamma prior multiplies its noise (the white noise outside the window has sd s sigma), and the
+    sampler integrates s^2 out at one effective count per value; a small run ranks its truth."""
+    from scipy.stats import kstest
+
+    from mitsuba_p3.evaluate.sbc import _simulate, model_core, run_sbc, simulate_scored, smc_sampler
+    from mitsuba_p3.fit.fields import FieldsNoise
+    from mitsuba_p3.infer.smc import SMCConfig
+
+    form = FieldsNoise.from_dict(fitted.noise.fields)
+    fields = model_core(fitted.root, resolution=RES, noise="fields")
+    core = model_core(fitted.root, resolution=RES, noise="scaled")
+    assert core.config.scale == (*form.scale, 1.0) and core.config.sigma == fields.config.sigma
+    # the scales of 200 simulations follow the prior: s^2 ~ IG(a, b), i.e. b / s^2 ~ Gamma(a)
+    scales = np.array([_simulate(core, np.random.default_rng([3, i]))[5] for i in range(200)])
+    assert kstest(form.scale[1] / scales ** 2, "gamma", args=(form.scale[0],)).pvalue > 1e-3
+    assert {_simulate(fields, np.random.default_rng([3, i]))[5] for i in range(5)} == {1.0}
+    window = (24, 32)
+    for seed in range(3):
+        *_, clean, s = _simulate(core, np.random.default_rng(seed))
+        image, _, _, (top, left, height, width) = simulate_scored(core, np.random.default_rng(seed), window)
+        outside = np.ones(RES, bool)
+        outside[top:top + height, left:left + width] = False
+        assert np.std((image - clean)[outside]) / (s * core.config.sigma) == pytest.approx(1.0, abs=0.03)
+    sample = smc_sampler(core, SMCConfig(particles=4, oversample=2, mcmc_steps=1, final_steps=0, draws=16, islands=1,
+                                         window=window, wide_steps=0, rounds=1))
+    result = run_sbc(core, sample, 1, 9, window=window)
+    assert result.ranks.shape == (1, 8) and 0 <= result.ranks.min() and result.ranks.max() <= 9
+
+
 def test_the_smc_scores_the_window_it_is_handed_not_the_footprints(fitted):
     """SBC under the shading fields draws its fields on a window it picks before them and hands that window
     to the sampler: the sampler must score it, not the one the image's footprint (fields included) would

@@ -206,8 +206,9 @@ def sbc(
     resolution: str = typer.Option("120x160", help="HxW of the simulated images."),
     seed: int = typer.Option(0, help="Seed of the simulations and the sampler."),
     noise: str = typer.Option(DEFAULT_NOISE, help="The likelihood: fitted (the Gaussian at power 1 / correlation "
-                                                  "area), sandwich (the pose's power) or fields (the shading fields' "
-                                                  "form)."),
+                                                  "area), sandwich (the pose's power), fields (the shading fields' "
+                                                  "form) or scaled (the fields with each image's own noise "
+                                                  "scale, drawn from the fitted prior and integrated out)."),
     settings: Optional[List[str]] = typer.Option(None, "--set", help=SET_HELP),
     config_file: Optional[Path] = typer.Option(None, "--config", help=CONFIG_HELP),
     jobs: int = typer.Option(1, help="Parallel simulation workers (processes that live for the whole run)."),
@@ -219,8 +220,8 @@ def sbc(
     from ..evaluate.sbc import calibrate_model
     from ..files import claim_output_folder, folder_lock
 
-    if noise not in ("fitted", "sandwich", "fields"):
-        raise ConfigError(f"--noise must be fitted, sandwich or fields, got {noise!r}")
+    if noise not in ("fitted", "sandwich", "fields", "scaled"):
+        raise ConfigError(f"--noise must be fitted, sandwich, fields or scaled, got {noise!r}")
     if images < 2 or draws < 1 or jobs < 1:
         raise ConfigError(f"--images must be at least 2, --draws and --jobs at least 1; got {images}, {draws} "
                           f"and {jobs}")

@@ -22,6 +22,12 @@ sqrt(beta) on the true object's pixels and the floor its shadow changes, at powe
 fields live on the window's coordinates, so the simulation picks the window (from the image
 before the fields, as the sampler would) and the sampler scores that window.
 
+Under the image's own noise scale (``noise="scaled"``, :mod:`mitsuba_p3.fit.fields`, "An image's own
+scale") each simulation first draws its scale s^2 from the fitted inverse-gamma prior and multiplies
+all its noise, white and fields, by s; the sampler integrates s^2 out at an effective count of one per
+value (the model's own: the images are drawn from it, not tempered), and bridges it in after its search
+under the fixed scale, as inference does. So the check covers the bridge and the scaled density too.
+
 Checked coordinates: the position (x, y), the log half-extents (3) and the colour
 (RGB). Each is reported the way the field's tools print it (the ``SBC`` R package, ``sbi``'s
 ``check_sbc``, ArviZ's ``plot_ecdf_pit``):
@@ -163,9 +169,11 @@ def _simulate(core, rng: np.random.Generator):
     z = prior.sample(rng, 1)[0].astype(np.float32)
     x = {k: np.asarray(v) for k, v in prior.constrain(jnp.asarray(z)).items()}
     clean = np.asarray(core.renderer.render({k: np.asarray(v) for k, v in render_params(x).items()}))
-    sigma = config.sigma / np.sqrt(config.power)
+    # the image's own noise scale s, drawn from its inverse-gamma prior (1 where the likelihood fixes it)
+    s = 1.0 if config.scale is None else float(np.sqrt(config.scale[1] / rng.gamma(config.scale[0])))
+    sigma = s * config.sigma / np.sqrt(config.power)
     image = clean + sigma * rng.standard_normal(clean.shape)
-    return image.astype(np.float32), x, int(np.argmax(x["class_probabilities"])), z, clean
+    return image.astype(np.float32), x, int(np.argmax(x["class_probabilities"])), z, clean, s
 
 
 def simulate_scored(core, rng: np.random.Generator, window: tuple[int, int] | None = None):
@@ -176,7 +184,7 @@ def simulate_scored(core, rng: np.random.Generator, window: tuple[int, int] | No
     width), which the sampler must score: the fields live on its coordinates (module docstring)."""
     import jax.numpy as jnp
 
-    image, truth, cls, z, clean = _simulate(core, rng)
+    image, truth, cls, z, clean, s = _simulate(core, rng)
     if core.config.fields is None:
         return image, truth, cls, None
     from ..fit.fields import sample_fields
@@ -190,8 +198,8 @@ def simulate_scored(core, rng: np.random.Generator, window: tuple[int, int] | No
                          fields_regions(core.config))
     variances, basis, loading = fields_form(core.config, height, width,
                                             colours=np.asarray(core.params(jnp.asarray(z))["colour"]))
-    image[top:top + height, left:left + width] += sample_fields(np.asarray(masks), variances, basis, rng,
-                                                                loading).astype(np.float32)
+    image[top:top + height, left:left + width] += s * sample_fields(np.asarray(masks), variances, basis, rng,
+                                                                    loading).astype(np.float32)
     return image, truth, cls, where
 
 
@@ -312,7 +320,8 @@ def model_core(model_dir, renderer: str = "mitsuba", resolution: tuple[int, int]
     own images are simulated from: the fitted Gaussian at sigma / sqrt(power), power 1 (``noise``:
     ``fitted``, the power 1 / correlation area, or ``sandwich``, the pose's), or the shading fields' form
     (``fields``) with its sigma divided by sqrt(power) and its taus as fitted (the likelihood's own form,
-    :func:`~mitsuba_p3.infer.posterior.default_likelihood`)."""
+    :func:`~mitsuba_p3.infer.posterior.default_likelihood`), with the image's own scale integrated out under
+    the fitted prior at one effective count per value (``scaled``; module docstring)."""
     from ..errors import FitError
     from ..fit.model import FittedModel
     from ..infer.likelihood import LikelihoodConfig
@@ -320,15 +329,19 @@ def model_core(model_dir, renderer: str = "mitsuba", resolution: tuple[int, int]
 
     fitted = FittedModel(model_dir)
     model_noise = fitted.noise
-    if noise == "fields":
+    if noise in ("fields", "scaled"):
         from ..fit.fields import FieldsNoise
 
         if model_noise.fields is None:
             raise FitError(f"{model_dir} has no shading fields: refit its noise stage "
                            "(mitsuba-p3 fit ... --stages noise)")
         form = FieldsNoise.from_dict(model_noise.fields)
+        if noise == "scaled" and form.scale is None:
+            raise FitError(f"{model_dir} was fitted before the noise scale's prior: refit its noise stage "
+                           "(mitsuba-p3 fit ... --stages noise)")
         likelihood = LikelihoodConfig("p3", sigma=form.white_sigma, fields=form.taus, fields_degree=form.degree,
-                                      fields_channels=form.channels, shadows=model_noise.shadows)
+                                      fields_channels=form.channels, shadows=model_noise.shadows,
+                                      scale=(*form.scale, 1.0) if noise == "scaled" else None)
         return PosteriorCore(fitted, likelihood, renderer, *resolution)
     power = model_noise.power if noise == "fitted" else model_noise.pose_power
     if power is None:
@@ -353,7 +366,8 @@ def calibrate_model(model_dir, out, images: int = 200, draws: int = 99, resoluti
     """SBC of the default sampler (tempered SMC) on a fitted model's own renders: ``images`` simulations
     from its prior, each rendered with its observation model plus the likelihood's noise at the effective
     sigma / sqrt(power) that inference uses (``noise``: the power 1 / correlation area, ``fitted``, the
-    sandwich power along the pose, ``sandwich``, or the shading fields' form, ``fields``); ``config``: the
+    sandwich power along the pose, ``sandwich``, the shading fields' form, ``fields``, or that form with the
+    image's own scale, ``scaled``); ``config``: the
     :class:`~mitsuba_p3.infer.smc.SMCConfig` (default: the default). Writes ``out/sbc.json``, ``sbc.png``,
     ``calibration.png`` and ``cache.npz``, from which a killed run resumes; returns the summary. ``jobs`` > 1
     runs the simulations in that many worker processes (:func:`simulations_in_workers`)."""
@@ -372,7 +386,8 @@ def calibrate_model(model_dir, out, images: int = 200, draws: int = 99, resoluti
         from ..fit.fields import POWER_ON
 
         # the fields' form records where its power acts (a cache of the earlier form has no such entry)
-        form = {"noise": noise, **({"fields_power_on": POWER_ON} if noise == "fields" else {})}
+        form = {"noise": noise, **({"fields_power_on": POWER_ON} if noise in ("fields", "scaled") else {}),
+                **({"scale_form": "bridged"} if noise == "scaled" else {})}
         tag = json.dumps({**form, **json.loads(tag)}, sort_keys=True)
     simulations = simulations_in_workers(model_dir, resolution, noise, config, seed, draws, jobs) if jobs > 1 else None
     result = run_sbc(core, smc_sampler(core, config), images, draws, seed, cache=out / "cache.npz", progress=progress,
