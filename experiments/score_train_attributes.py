@@ -4,7 +4,8 @@ An evaluation run caches the posteriors of the first train images of every class
 spread's; ``experiments/sample_train_shots.py`` samples more). This scores them as
 ``mitsuba-p3 evaluate`` scores the test split (:func:`~mitsuba_p3.evaluate.metrics.attribute_recovery`,
 with the rule learnt from the fit's materials, the one ``mitsuba-p3 infer`` uses) and lists the
-misread images and the island gaps, so two fits or two samplers are compared on train classes only. Several runs, each
+misread images and the island gaps (and the shape's log score per true material kind), so two fits or two
+samplers are compared on train classes only. Several runs, each
 with its own model, print side by side:
 
     python experiments/score_train_attributes.py data/fsclvr-lo \\
@@ -41,7 +42,12 @@ def score(dataset, run: Path, model: Path, likelihood: str, shots: int | None, o
         wrong = [f"{a} {r[f'{a}_decided']}" for a in ATTRIBUTES if r[f"{a}_true"] != r[f"{a}_decided"]]
         if wrong:
             misread.append(f"{r['class']}#{r['query']}: " + ", ".join(wrong))
+    materials = sorted({r["material_true"] for r in rows if "shape_log_score" in r})
+    by_material = {m: round(float(np.mean([r["shape_log_score"] for r in rows
+                                           if r["material_true"] == m and "shape_log_score" in r])), 3)
+                   for m in materials}
     return {"model": str(model), **{k: round(v, 3) if isinstance(v, float) else v for k, v in summary.items()},
+            "shape_log_score_by_material": by_material,
             **gap_summary([p.island_gap for p in cached.values()]), "misread": misread}
 
 
