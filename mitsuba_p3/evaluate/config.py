@@ -61,8 +61,8 @@ class EvaluationConfig:
 
             key["fields_power_on"] = POWER_ON    # a folder of the fields' earlier form has none: refused
         if self.noise == "scaled":
-            # the image's scale bridged in after a search under the fixed scale (mitsuba_p3.infer.smc); a folder
-            # of its first form (the scaled density tempered in from the prior) has none: refused
-            key["scale_form"] = "bridged"
+            from ..infer.bridge import SCALE_FORM
+
+            key["scale_form"] = SCALE_FORM       # a folder of the scaled noise's first form has none: refused
         return key
 

@@ -384,10 +384,11 @@ def calibrate_model(model_dir, out, images: int = 200, draws: int = 99, resoluti
     tag = settings_tag(config)
     if noise != "fitted":
         from ..fit.fields import POWER_ON
+        from ..infer.bridge import SCALE_FORM
 
         # the fields' form records where its power acts (a cache of the earlier form has no such entry)
         form = {"noise": noise, **({"fields_power_on": POWER_ON} if noise in ("fields", "scaled") else {}),
-                **({"scale_form": "bridged"} if noise == "scaled" else {})}
+                **({"scale_form": SCALE_FORM} if noise == "scaled" else {})}
         tag = json.dumps({**form, **json.loads(tag)}, sort_keys=True)
     simulations = simulations_in_workers(model_dir, resolution, noise, config, seed, draws, jobs) if jobs > 1 else None
     result = run_sbc(core, smc_sampler(core, config), images, draws, seed, cache=out / "cache.npz", progress=progress,
