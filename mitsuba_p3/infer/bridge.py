@@ -29,13 +29,13 @@ from typing import Callable
 import numpy as np
 
 from . import tempering
+from .smc_moves import kernels_for
+from .smc_moves import mover
 
 # how the image's own noise scale enters a run: bridged in after the search under the fixed scale. Records of
 # cached posteriors (an evaluation's run.json, an SBC cache's tag) name it, so that those of its first form
 # (tempered in from the prior) are refused rather than resumed
 SCALE_FORM = "bridged"
-from .smc_moves import kernels_for
-from .smc_moves import mover
 
 
 def bridge(core, observation, start, config, key, progress: Callable[[str, int, int], None] | None = None,
