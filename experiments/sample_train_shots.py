@@ -23,6 +23,7 @@ from mitsuba_p3.concepts import DistanceConfig
 from mitsuba_p3.errors import MitsubaP3Error
 from mitsuba_p3.evaluate.config import EvaluationConfig
 from mitsuba_p3.evaluate.run import sample_spread
+from mitsuba_p3.infer.likelihood import DEFAULT_NOISE
 from mitsuba_p3.infer.smc import SMCConfig
 
 
@@ -33,7 +34,7 @@ def main() -> None:
     parser.add_argument("run", type=Path, help="run folder (resumes; an evaluation run with the same settings)")
     parser.add_argument("--shots", type=int, default=6, help="train images per class")
     parser.add_argument("--sampler", default="{}", help="JSON: SMCConfig fields that differ from the default")
-    parser.add_argument("--noise", default="fitted")
+    parser.add_argument("--noise", default=DEFAULT_NOISE, help=f"the likelihood (default {DEFAULT_NOISE}, as evaluate's)")
     parser.add_argument("--jobs", type=int, default=1)
     args = parser.parse_args()
     try:
