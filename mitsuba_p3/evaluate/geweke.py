@@ -78,7 +78,8 @@ def successive_conditional(core, hypothesis: int, moves: str, chains: int, steps
     import jax.numpy as jnp
 
     from ..infer.hypotheses import hypotheses_of, initial_particles
-    from ..infer.smc_moves import WALK_MASK, covariance_factors, kernels
+    from ..infer.move_scales import WALK_MASK, covariance_factors
+    from ..infer.smc_moves import kernels
 
     rng = np.random.default_rng(seed)
     space = hypotheses_of(core.prior, False)

@@ -29,21 +29,13 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from .. import small_linalg
-from ..space import DIMENSION, SLICES
+from ..space import SLICES
 from .chunks import map_in_chunks
 from .hypotheses import hypotheses_of, hypothesis_log_prior
+from .move_scales import POSE_MASK, WALK_MASK, gradient_step, pose_directions, walk_factors
 from .symmetry import chart_centres, folded, quarter_turn, quarters
 from .tempering import TARGET_GRADIENT_ACCEPTANCE, TemperedState, adaptation
 
-# what the random walk moves: not the class (fixed by the hypothesis) nor the material (the material update's)
-WALK_MASK = np.array([0.0 if any(i in range(DIMENSION)[SLICES[name]]
-                                 for name in ("kappa", "colour", "ambient", "diffuse", "specular")) else 1.0
-                      for i in range(DIMENSION)], np.float32)
-
-
-# what the gradient move moves: position, yaw and log half-extents
-POSE_MASK = np.array([1.0 if any(i in range(DIMENSION)[SLICES[name]] for name in ("shift", "theta", "scale"))
-                      else 0.0 for i in range(DIMENSION)], np.float32)
 # where the symmetry move's turns are made: rendered at every material update (exact), or free after
 # every walk (no render; the likelihood taken as unchanged)
 SYMMETRY_MOVES = ("rendered", "free")
@@ -289,36 +281,6 @@ def kernels(core, kinds: bool, ridge: int, symmetry: str | None = None, chart: b
 def kernels_for(core, config) -> Kernels:
     """The kernels an SMC run under ``config`` (:class:`~mitsuba_p3.infer.smc.SMCConfig`) moves with."""
     return kernels(core, config.kinds, config.ridge, config.symmetry, config.chart, config.jump)
-
-
-def covariance_factors(position: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Each row's Cholesky factor (R, d, d) of its particles' covariance over the dimensions of
-    ``mask`` (zero elsewhere)."""
-    moved = mask > 0
-    tril = np.zeros((len(position), DIMENSION, DIMENSION))
-    for r in range(len(position)):
-        cov = np.cov(position[r][:, moved], rowvar=False) + 1e-6 * np.eye(moved.sum())
-        tril[r][np.ix_(moved, moved)] = np.linalg.cholesky(cov)
-    return tril
-
-
-def walk_factors(position: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """Each row's walk Cholesky factor (R, d, d): 2.38 / sqrt(d) times its particles' covariance
-    over the walked dimensions, times its ``scale``."""
-    factors = covariance_factors(position, WALK_MASK) * 2.38 / np.sqrt(int(WALK_MASK.sum()))
-    return (factors * np.asarray(scale)[:, None, None]).astype(np.float32)
-
-
-def pose_directions(position: np.ndarray) -> np.ndarray:
-    """Each row's gradient-move directions (R, d, k): the columns of the Cholesky factor of its
-    particles' covariance over the k pose dimensions (:data:`POSE_MASK`)."""
-    return covariance_factors(position, POSE_MASK)[:, :, POSE_MASK > 0].astype(np.float32)
-
-
-def gradient_step(scale: np.ndarray) -> np.ndarray:
-    """(R,) the gradient move's step in the whitened coordinates: MALA's optimal 1.65 k^(-1/3)
-    (Roberts and Rosenthal 1998) times each row's adapted scale."""
-    return (1.65 * float(POSE_MASK.sum()) ** (-1.0 / 3.0) * np.asarray(scale)).astype(np.float32)
 
 
 def mover(kernels: Kernels, index, observation, sweeps: int, material_every: int,

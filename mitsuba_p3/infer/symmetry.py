@@ -7,7 +7,7 @@ symmetry move (:meth:`~mitsuba_p3.infer.model.PosteriorCore.symmetry_turn`) keep
 spread over all four, as they should be.
 
 That spread must not reach the random walk's proposal. The walk's covariance is its particles'
-own (:func:`~mitsuba_p3.infer.smc_moves.walk_factors`); over particles in four copies it is
+own (:func:`~mitsuba_p3.infer.move_scales.walk_factors`); over particles in four copies it is
 dominated by the distance between copies (a yaw spread of a radian or more, x and y half-extents
 mixed by the swap), not by the width of any one copy (about a milliradian and a millimetre where
 the likelihood is sharp). Scaled to 25% acceptance, such a walk takes steps a thousandth of what
