@@ -7,12 +7,15 @@ list of {"class": {"shape": ...}}) adds the share of right shapes; ``--set smc.F
 sampler as on ``mitsuba-p3 infer``; ``--profile FILE`` writes where the last image's seconds went
 (cProfile, the 40 costliest calls by cumulative time); ``--seeds 2`` samples every image under two
 seeds and adds the share of images whose decided shape is the same under all of them, with the
-island gap's median, 90th percentile and share over 10 nats.
+island gap's median, 90th percentile and share over 10 nats. ``--steps host,device`` runs every
+particle count under each way of running a plain SMC step (``MITSUBA_P3_SMC_STEP``: on the host, or
+as one compiled call on the device, :mod:`mitsuba_p3.infer.device_step`), side by side in one process.
 
     python scripts/bench_posterior.py MODEL IMAGE... [--renderer jax] [--particles 64,256] [--truth T]
 """
 import argparse
 import json
+import os
 import statistics
 import time
 from dataclasses import replace
@@ -31,10 +34,12 @@ def main() -> None:
     parser.add_argument("--profile", default=None, help="write the last image's profile here")
     parser.add_argument("--seeds", type=int, default=1, help="sample every image under this many seeds")
     parser.add_argument("--noise", default=None, help="the noise form (default: the default, DEFAULT_NOISE)")
+    parser.add_argument("--steps", default=None, help="comma-separated: host, device (default: the device's choice)")
     args = parser.parse_args()
     from mitsuba_p3.cli.settings import apply_settings
     from mitsuba_p3.fit.model import FittedModel
     from mitsuba_p3.images import load_observation
+    from mitsuba_p3.infer.device_step import STEP_ENV, STEPS, step_for
     from mitsuba_p3.infer.likelihood import DEFAULT_NOISE
     from mitsuba_p3.infer.posterior import default_likelihood, infer_image
     from mitsuba_p3.infer.smc import SMCConfig
@@ -45,16 +50,21 @@ def main() -> None:
     likelihood = default_likelihood(fitted, "p3", None, noise)
     images = [load_observation(p) for p in args.images]
     truth = [t["class"]["shape"] for t in json.load(open(args.truth))] if args.truth else None
+    steps = args.steps.split(",") if args.steps else [step_for()]
+    if any(step not in STEPS for step in steps):
+        parser.error(f"--steps: each one of {', '.join(STEPS)}")
     report = {"machine": where(), "renderer": args.renderer, "noise": noise, "images": len(images),
               "settings": args.settings, "runs": {}}
-    for particles in (int(p) for p in args.particles.split(",")):
+    for step, particles in ((s, int(p)) for p in args.particles.split(",") for s in steps):
+        os.environ[STEP_ENV] = step
+        name = f"{particles} {step}" if args.steps else particles
         config = apply_settings(SMCConfig(particles=particles), args.settings)
         start = time.perf_counter()
         try:
             infer_image(fitted, images[0], likelihood, config, renderer=args.renderer)
         except Exception as error:       # e.g. out of device memory: say so and go on with the next count
-            report["runs"][particles] = {"failed": f"{type(error).__name__}: {str(error)[:200]}"}
-            print(json.dumps({particles: report["runs"][particles]}), flush=True)
+            report["runs"][name] = {"failed": f"{type(error).__name__}: {str(error)[:200]}"}
+            print(json.dumps({name: report["runs"][name]}), flush=True)
             continue
         warm = time.perf_counter() - start
         rows = []
@@ -73,11 +83,11 @@ def main() -> None:
 
                 profile.disable()
                 with open(args.profile, "a") as stream:
-                    stream.write(f"== {particles} particles per hypothesis\n")
+                    stream.write(f"== {particles} particles per hypothesis, the {step} step\n")
                     pstats.Stats(profile, stream=stream).sort_stats("cumulative").print_stats(40)
             rows.append({"seed": seed, "seconds": round(time.perf_counter() - start, 3),
                          "shape": posterior.estimate()["shape"], "island_gap": posterior.statistic("island_gap")})
-        entry = {"first_call_seconds": round(warm, 2),
+        entry = {"step": step, "first_call_seconds": round(warm, 2),
                  "median_seconds": round(statistics.median(r["seconds"] for r in rows), 3), "per_image": rows}
         gaps = np.array([r["island_gap"] for r in rows], float)
         entry["island_gap"] = {"median": float(np.nanmedian(gaps)), "p90": float(np.nanpercentile(gaps, 90)),
@@ -87,8 +97,8 @@ def main() -> None:
             entry["same_shape_every_seed"] = float(np.mean(np.all(shapes == shapes[:1], axis=0)))
         if truth:
             entry["shape_right"] = float(np.mean([r["shape"] == truth[n % len(images)] for n, r in enumerate(rows)]))
-        report["runs"][particles] = entry
-        print(json.dumps({particles: {k: v for k, v in entry.items() if k != "per_image"}}), flush=True)
+        report["runs"][name] = entry
+        print(json.dumps({name: {k: v for k, v in entry.items() if k != "per_image"}}), flush=True)
     print(json.dumps(report, indent=1))
 
 

@@ -458,6 +458,62 @@ def test_a_moves_sweeps_in_one_call_are_the_sweep_by_sweep_loop(fitted, observed
         assert np.isnan(out[5]).all()                   # no kind's jump by default
 
 
+def test_a_step_on_the_device_is_the_host_steps_reweight_resample_and_move(fitted, observed, monkeypatch):
+    """``device_step.step`` (reweight, resample, chart, walk factor and sweeps in one compiled call) draws
+    what ``tempering.step`` with ``mover``'s move draws from the same state and key, up to float32 rounding:
+    the same increments, temperatures, evidence, ESS and acceptance, the same particles; a row already at
+    lambda = 1 only moves, and the last step goes the whole way. Its compiled call takes device arrays and
+    needs no host transfer; the choice of step follows the device and refuses an unknown forced value."""
+    import jax
+    import jax.numpy as jnp
+
+    from mitsuba_p3.errors import ConfigError
+    from mitsuba_p3.infer import device_step, tempering
+    from mitsuba_p3.infer.smc_moves import kernels, mover
+
+    model = PosteriorModel(fitted, observed, LikelihoodConfig("p3", sigma=0.05))
+    k = kernels(model.core, False, 1, "rendered")
+    index = jnp.asarray([0, 2, 1], jnp.int32)
+    start = model.core.prior.sample(np.random.default_rng(5), 24).astype(np.float32).reshape(3, 8, -1)
+    state = tempering.init(start, *(np.asarray(a) for a in k.score(jnp.asarray(start), index, model.observation)),
+                           tempering=np.array([0.2, 1.0, 0.6]))
+    state = state._replace(scale=np.array([0.5, 1.0, 2.0]))
+    move = mover(k, index, model.observation, 3, 2, final_sweeps=2)
+    for force in (False, True):
+        key = jax.random.PRNGKey(7 + force)
+        host, host_info = tempering.step(key, state, move, 0.5, force=force)
+        device, device_info = device_step.step(key, state, k, index, model.observation, 3, 2, 2, 0.5, force=force)
+        np.testing.assert_allclose(device.tempering, host.tempering, atol=1e-6)
+        assert host.tempering[1] == 1.0 and (np.all(host.tempering == 1.0) if force else host.tempering[0] < 1.0)
+        np.testing.assert_allclose(device_info.log_evidence_increment, host_info.log_evidence_increment, atol=1e-3)
+        np.testing.assert_allclose(device.log_evidence, host.log_evidence, atol=1e-3)
+        np.testing.assert_allclose(device_info.ess, host_info.ess, atol=1e-4)
+        np.testing.assert_allclose(device.scale, host.scale, rtol=1e-5)
+        assert sorted(device_info.acceptance) == sorted(host_info.acceptance)
+        for name, rate in host_info.acceptance.items():
+            np.testing.assert_allclose(device_info.acceptance[name], rate, atol=1e-6)
+        for a, b in zip(device[:3], host[:3]):
+            assert isinstance(a, jax.Array) and isinstance(b, np.ndarray)
+            np.testing.assert_allclose(np.asarray(a), b, rtol=2e-3, atol=2e-3)
+    # the compiled call on device arrays: no implicit transfer between the host and the device
+    run = device_step._compiled(k, 3, 2, 2)
+    args = (jax.random.PRNGKey(7), tuple(jnp.asarray(a) for a in state[:3]), jnp.asarray(1 - state.tempering,
+            jnp.float32), jnp.asarray(state.tempering, jnp.float32), jnp.asarray(state.scale, jnp.float32),
+            jnp.float32(0.5), jnp.bool_(False), index, jax.tree_util.tree_map(jnp.asarray, model.observation))
+    with jax.transfer_guard("disallow"):
+        moved, small = run(*args)
+        jax.block_until_ready(moved)
+    assert set(small) >= {"step", "lse", "ess", "walk", "material", "nan"}
+
+    monkeypatch.delenv(device_step.STEP_ENV, raising=False)
+    assert device_step.step_for("gpu") == "device" and device_step.step_for("cpu") == "host"
+    monkeypatch.setenv(device_step.STEP_ENV, "device")
+    assert device_step.step_for("cpu") == "device"
+    monkeypatch.setenv(device_step.STEP_ENV, "gpu")
+    with pytest.raises(ConfigError, match="MITSUBA_P3_SMC_STEP"):
+        device_step.step_for()
+
+
 def test_sampler_weighs_modes_correctly(fitted):
     """On a known target (three Gaussians, one per shape class, with weights 0.5, 0.3, 0.2) the
     mode jumps and walks give each class its probability: a wrong Hastings term would not.

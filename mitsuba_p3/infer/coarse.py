@@ -13,7 +13,7 @@ residual is correlated over many pixels (a box is about as variable as one pixel
 sigma falls f-fold), so the particles the coarse steps leave are near where the full likelihood
 wants them, and the change's weights stay even. Nothing else
 depends on it being right: the SMC reweights by the ratio of the two tempered likelihoods where
-it changes from the coarse target to the full one (:func:`mitsuba_p3.infer.smc.temper`), so its
+it changes from the coarse target to the full one (:func:`to_full`), so its
 evidence estimates the full likelihood's, whatever the coarse one is.
 
 It is P3's colour likelihood even for NP3 (VGG16's features of a 28 x 36 window mean little). The
@@ -55,3 +55,15 @@ def coarse_view(core, observation: dict, image: np.ndarray, factor: int):
     rows, cols = (max(8, n // factor) for n in np.shape(observation["image"])[:2])
     top, left = min(top, height // factor - rows), min(left, width // factor - cols)
     return coarse, coarse.observe(small, (top, left, rows, cols), float(observation["outside_window"]))
+
+
+def to_full(kernels, state, index, observation):
+    """A coarse start's particles scored by the full likelihood (``kernels``' score of ``observation``) at
+    the same lambda: the state with the full log likelihoods, and each particle's log weight lambda (full -
+    coarse) for the step that changes targets, so that its evidence stays the full likelihood's."""
+    import jax.numpy as jnp
+
+    fine, _ = kernels.score(jnp.asarray(state.position), index, observation)
+    fine = np.asarray(fine, np.float64)
+    change = state.tempering[:, None] * (fine - state.loglikelihood)
+    return state._replace(loglikelihood=fine.astype(np.float32)), change

@@ -9,8 +9,9 @@ parameters, and its *evidence* Z_h = p(I | h) decides between them:
 
 Each hypothesis runs a tempered SMC (:mod:`mitsuba_p3.infer.tempering`: N particles move
 through p(z | h) p(I | z)^lambda as lambda rises from 0 to 1, and the run estimates log Z_h)
-with the moves of :mod:`mitsuba_p3.infer.smc_moves`. All runs of all hypotheses are rows of
-one state, scored in one batched render per move. This module is the layer that makes
+with the moves of :mod:`mitsuba_p3.infer.smc_moves` (where JAX runs on a GPU, a plain step is one
+compiled call on the device: :mod:`mitsuba_p3.infer.device_step`). All runs of all hypotheses are rows
+of one state, scored in one batched render per move. This module is the layer that makes
 scenes of it:
 
 **The first step starts from the image.** It draws ``oversample`` x N scenes per
@@ -83,10 +84,10 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from ..space import SLICES
-from . import tempering
+from . import device_step, tempering
 from .evidence import decision, island_gap, island_range, mark_lost_runs, object_evidence, pooled_evidence
 from .budget import GPU_PARTICLES, check_sampler_memory, default_particles  # noqa: F401 (re-exported)
-from .coarse import coarse_view
+from .coarse import coarse_view, to_full
 from .hypotheses import Hypotheses, footprint_start, hypotheses_of, initial_particles
 from .importance import importance_evidence
 from .smc_config import DEFAULTS_BEFORE, SMCConfig  # noqa: F401 (re-exported)
@@ -179,6 +180,13 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
         start_kernels, start_observation, start_move = kernels, observation, move
     state = tempering.init(draws, *start_kernels.score(jnp.asarray(draws), index_j, start_observation))
     steps, pool = [], None
+    # a plain step (reweight, resample, the walks and material updates) as one compiled call where JAX runs
+    # on a GPU (device_step.py); the first step, a coarse start's change, persistent sampling, waste-free SMC
+    # and MALA run on the host
+    on_device = (device_step.step_for() == "device" and not free and not config.persistent
+                 and not (config.gradient_steps or config.final_gradient_steps))
+    if on_device:       # the observed images copied to the device once, not at every step's call
+        on_start, on_full = jax.device_put(start_observation), jax.device_put(observation)
     # (a coarse start that reached lambda = 1 still changes to the full likelihood before the run ends)
     while len(steps) < config.max_temperatures and (not np.all(state.tempering >= 1.0)
                                                     or coarse and len(steps) <= wide_steps):
@@ -191,23 +199,24 @@ def temper(core, observation, index: np.ndarray, config: SMCConfig, rng: np.rand
             # the wide start resamples down to N
             last_wide = width > 1 and len(steps) == wide_steps
             count = kept or (width * config.particles if first else config.particles if last_wide else None)
-            change = None
-            if coarse and last_wide:
-                # from the coarse target to the full one at the same lambda: each particle's weight is the
-                # ratio of the two tempered likelihoods, so the evidence stays the full likelihood's
-                fine, _ = kernels.score(jnp.asarray(state.position), index_j, observation)
-                fine = np.asarray(fine, np.float64)
-                change = state.tempering[:, None] * (fine - state.loglikelihood)
-                state = state._replace(loglikelihood=fine.astype(np.float32))
-            state, info = tempering.step(k_step, state, start_move if len(steps) < wide_steps else move,
-                                         config.target_ess / (config.oversample / width if first else 1),
-                                         count=count, offset=offset if first else change, force=force)
-            if config.persistent:
-                pool = tempering.pool_add(None, state, config.max_temperatures)
+            wide = len(steps) < wide_steps
+            if on_device and not first and not last_wide:
+                state, info = device_step.step(k_step, state, start_kernels if wide else kernels, index_j,
+                                               on_start if wide else on_full, config.mcmc_steps,
+                                               config.material_every, config.final_steps, config.target_ess, force)
+            else:
+                state, change = device_step.on_host(state), None
+                if coarse and last_wide:    # from the coarse target to the full one, weighed by their ratio
+                    state, change = to_full(kernels, state, index_j, observation)
+                state, info = tempering.step(k_step, state, start_move if wide else move,
+                                             config.target_ess / (config.oversample / width if first else 1),
+                                             count=count, offset=offset if first else change, force=force)
+                if config.persistent:
+                    pool = tempering.pool_add(None, state, config.max_temperatures)
         steps.append(tempering.record(info, index))
         if progress:
             progress("smc", int(100 * state.tempering.min()), 100)
-    return Rows(np.asarray(index), SMCState(*state[:3]), state.log_evidence, len(steps), steps)
+    return Rows(np.asarray(index), SMCState(*device_step.on_host(state)[:3]), state.log_evidence, len(steps), steps)
 
 
 def _joined(parts: list[Rows]) -> Rows:

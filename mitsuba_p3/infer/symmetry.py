@@ -71,15 +71,16 @@ def quarters(z, centres, xp=np):
     return xp.round((yaw(z, xp) - centres[:, None]) / QUARTER).astype(xp.int32)
 
 
-def chart_centres(position: np.ndarray) -> np.ndarray:
+def chart_centres(position, xp=np):
     """(R,) each row's chart centre: the circular mean of its particles' yaw taken modulo a quarter
-    turn (the mean of exp(4 i theta), its angle / 4), so particles in any copy of one pose agree on it."""
-    theta = yaw(np.asarray(position, np.float64))
-    return np.angle(np.exp(4j * theta).mean(axis=-1)) / 4
+    turn (the mean of exp(4 i theta), its angle / 4), so particles in any copy of one pose agree on it.
+    Under numpy in float64; under ``jax.numpy`` in the positions' own precision."""
+    theta = yaw(np.asarray(position, np.float64) if xp is np else position, xp)
+    return xp.arctan2(xp.sin(4 * theta).mean(axis=-1), xp.cos(4 * theta).mean(axis=-1)) / 4
 
 
-def folded(position: np.ndarray, centres: np.ndarray) -> np.ndarray:
+def folded(position, centres, xp=np):
     """Positions (R, N, 15) turned into their row's chart (the copy whose yaw is within 45 degrees of
     its centre): the population whose covariance the walk takes."""
-    position = np.asarray(position, np.float64)
-    return quarter_turn(position, -quarters(position, centres))[0]
+    position = np.asarray(position, np.float64) if xp is np else position
+    return quarter_turn(position, -quarters(position, centres, xp), xp)[0]

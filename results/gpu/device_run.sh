@@ -1,11 +1,16 @@
 # The GPU checks of issue 44 on a lent device machine (the Mitsuba and Dr.Jit wheels stripped to the rgb
-# variants and carried as .devdata/site.tar.xz; the working tree's results/ left behind).
+# variants and carried as .devdata/site.tar.xz; the working tree's results/ left behind). The newest
+# question first: a call has 600 s, and the parts after it are cut where it runs out.
 export PYTHONUNBUFFERED=1
 mkdir -p /tmp/site && tar -xJf .devdata/site.tar.xz -C /tmp/site || exit 1
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv | tee $OUT/gpu.txt
 python3 -m mitsuba_p3.cli doctor 2>&1 | tee $OUT/doctor.txt
+echo "== bench_posterior (the JAX tracer: each plain SMC step on the host, then as one compiled call on the device)"
+timeout 240 python3 scripts/bench_posterior.py .devdata/model .devdata/images/*.png --renderer jax --particles 64 \
+  --steps host,device --truth .devdata/images/truth.json --profile $OUT/profile_steps.txt \
+  > $OUT/bench_posterior_steps.json 2> $OUT/bench_posterior_steps.err; tail -5 $OUT/bench_posterior_steps.err
 echo "== tests on the GPU (render, gradients, JAX tracer, backend, Mitsuba inside JAX in place)"
 timeout 200 python3 -m pytest -q -p no:cacheprovider -o addopts="" -m "not slow" tests/test_backend.py tests/test_render.py \
   tests/test_gradients.py tests/test_jax_tracer.py tests/test_render_functions.py 2>&1 | tee $OUT/tests_gpu.txt | tail -40
