@@ -514,6 +514,28 @@ def test_a_step_on_the_device_is_the_host_steps_reweight_resample_and_move(fitte
         device_step.step_for()
 
 
+def test_an_smc_run_with_its_plain_steps_on_the_device_is_a_whole_run(fitted, observed, monkeypatch):
+    """``temper`` with ``MITSUBA_P3_SMC_STEP=device`` (a coarse wide start of two steps): the first step and the
+    change to the full likelihood on the host, the others as one compiled call each; every hypothesis reaches
+    lambda = 1 with a finite evidence, and the second step, the first on the device, takes the increment the
+    host's would from the same first step."""
+    from mitsuba_p3.infer.smc import SMCConfig
+
+    likelihood = LikelihoodConfig("p3", sigma=0.05)
+    config = SMCConfig(particles=8, mcmc_steps=1, final_steps=1, draws=100, islands=1, rounds=1, wide_steps=2,
+                       importance=0)
+    runs = {}
+    for where in ("host", "device"):
+        monkeypatch.setenv("MITSUBA_P3_SMC_STEP", where)
+        runs[where] = infer_image(fitted, observed, likelihood, config)
+    host, device = (runs[w].statistic("steps") for w in ("host", "device"))
+    assert host[0] == device[0] and len(device) >= 4
+    np.testing.assert_allclose(device[1]["tempering"], host[1]["tempering"], atol=1e-6)
+    assert device[-1]["tempering"] == [1.0] * len(device[-1]["rows"])
+    assert all(np.isfinite(v["log_evidence"]) for v in runs["device"].statistic("hypotheses").values())
+    assert isinstance(runs["device"].draws("shift"), np.ndarray)
+
+
 def test_sampler_weighs_modes_correctly(fitted):
     """On a known target (three Gaussians, one per shape class, with weights 0.5, 0.3, 0.2) the
     mode jumps and walks give each class its probability: a wrong Hastings term would not.

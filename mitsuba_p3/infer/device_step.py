@@ -129,7 +129,7 @@ def step(key, state: TemperedState, kernels, index, observation, sweeps: int, ma
     n = state.loglikelihood.shape[1]
     increment = step_ * small["top"].astype(np.float64) + small["lse"] - np.log(n)
     tempering = np.where(remaining - step_ < 1e-9, 1.0, state.tempering + step_)
-    if small["nan"].any():
+    if small["nan"].any():      # refused as the host step refuses it, naming the rows
         _check_finite(np.where(small["nan"][:, None], np.nan, 0.0))
     rates = {name: np.asarray(small[name]) for name in ("walk", "material", "turn", "jump")
              if not np.isnan(small[name]).all()}
