@@ -81,9 +81,10 @@ def test_a_forced_variant_is_checked(monkeypatch):
 
 
 def test_cli_variant_option_and_doctor(tmp_path):
-    """`--variant` reaches the backend before Mitsuba loads; doctor says which variant and why, and the
-    XLA flags the process runs with."""
+    """`--variant` reaches the backend before Mitsuba loads; doctor says which variant and why, the
+    XLA flags the process runs with, and the choices that follow the device (forced here by their variables)."""
     env = {k: v for k, v in os.environ.items() if k != backend.VARIANT_ENV}
+    env.update(MITSUBA_P3_SMC_STEP="device", MITSUBA_P3_JAX_BATCHING="vmap")
     done = subprocess.run([sys.executable, "-m", "mitsuba_p3.cli", "--variant", "llvm_ad_rgb", "doctor"], env=env,
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
@@ -92,6 +93,7 @@ def test_cli_variant_option_and_doctor(tmp_path):
     report = json.loads(done.stdout)
     assert report["variant"] == "llvm_ad_rgb" and "forced" in report["variant_why"]
     assert report["cpu_cores"] >= 1 and "jax_backend" in report
+    assert report["smc_step"] == "device" and report["jax_batching"] == "vmap"
     import mitsuba_p3
 
     assert report["xla_flags"] == mitsuba_p3._xla_flags(env.get("XLA_FLAGS", ""), mitsuba_p3._jaxlib_version())

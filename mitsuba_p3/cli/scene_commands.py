@@ -70,7 +70,10 @@ def crosscheck(
 
 @app.command()
 def doctor() -> None:
-    """Check the rendering backend (libLLVM, Mitsuba variant) and print what it runs on."""
+    """Check the rendering backend (libLLVM, Mitsuba variant) and print what it runs on, and the choices that
+    follow the device: the JAX tracer's batching and where a plain SMC step runs."""
     from ..backend import describe
+    from ..infer.device_step import step_for
+    from ..render.jax_tracer import batching_for
 
-    typer.echo(json.dumps(describe(), indent=2))
+    typer.echo(json.dumps({**describe(), "jax_batching": batching_for(), "smc_step": step_for()}, indent=2))
