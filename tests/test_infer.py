@@ -514,6 +514,7 @@ def test_a_step_on_the_device_is_the_host_steps_reweight_resample_and_move(fitte
         device_step.step_for()
 
 
+@pytest.mark.slow
 def test_an_smc_run_with_its_plain_steps_on_the_device_is_a_whole_run(fitted, observed, monkeypatch):
     """``temper`` with ``MITSUBA_P3_SMC_STEP=device`` (a coarse wide start of two steps): the first step and the
     change to the full likelihood on the host, the others as one compiled call each; every hypothesis reaches
