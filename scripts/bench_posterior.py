@@ -12,6 +12,7 @@ particle count under each way of running a plain SMC step (``MITSUBA_P3_SMC_STEP
 as one compiled call on the device, :mod:`mitsuba_p3.infer.device_step`), side by side in one process.
 
     python scripts/bench_posterior.py MODEL IMAGE... [--renderer jax] [--particles 64,256] [--truth T]
+                                      [--steps host,device]
 """
 import argparse
 import json
@@ -45,14 +46,14 @@ def main() -> None:
     from mitsuba_p3.infer.smc import SMCConfig
     from bench_render import where
 
+    steps = args.steps.split(",") if args.steps else [step_for()]
+    if any(step not in STEPS for step in steps):
+        parser.error(f"--steps: each one of {', '.join(STEPS)}")
     fitted = FittedModel(args.model)
     noise = args.noise or DEFAULT_NOISE
     likelihood = default_likelihood(fitted, "p3", None, noise)
     images = [load_observation(p) for p in args.images]
     truth = [t["class"]["shape"] for t in json.load(open(args.truth))] if args.truth else None
-    steps = args.steps.split(",") if args.steps else [step_for()]
-    if any(step not in STEPS for step in steps):
-        parser.error(f"--steps: each one of {', '.join(STEPS)}")
     report = {"machine": where(), "renderer": args.renderer, "noise": noise, "images": len(images),
               "settings": args.settings, "runs": {}}
     for step, particles in ((s, int(p)) for p in args.particles.split(",") for s in steps):
