@@ -11,9 +11,10 @@ echo "== bench_posterior (the JAX tracer: each plain SMC step on the host, then 
 timeout 240 python3 scripts/bench_posterior.py .devdata/model .devdata/images/*.png --renderer jax --particles 64 \
   --steps host,device --truth .devdata/images/truth.json --profile $OUT/profile_steps.txt \
   > $OUT/bench_posterior_steps.json 2> $OUT/bench_posterior_steps.err; tail -5 $OUT/bench_posterior_steps.err
-echo "== tests on the GPU (render, gradients, JAX tracer, backend, Mitsuba inside JAX in place)"
+echo "== tests on the GPU (render, gradients, JAX tracer, backend, Mitsuba inside JAX in place, the SMC step on the device)"
 timeout 200 python3 -m pytest -q -p no:cacheprovider -o addopts="" -m "not slow" tests/test_backend.py tests/test_render.py \
-  tests/test_gradients.py tests/test_jax_tracer.py tests/test_render_functions.py 2>&1 | tee $OUT/tests_gpu.txt | tail -40
+  tests/test_gradients.py tests/test_jax_tracer.py tests/test_render_functions.py \
+  tests/test_infer.py::test_a_step_on_the_device_is_the_host_steps_reweight_resample_and_move 2>&1 | tee $OUT/tests_gpu.txt | tail -40
 echo "== bench_render"
 timeout 100 python3 scripts/bench_render.py --renderers mitsuba,jax --repeats 10 --wide 20,256,4096 --callbacks 128,512,4096 > $OUT/bench_render_h200.json 2> $OUT/bench_render.err; tail -3 $OUT/bench_render.err
 echo "== bench_posterior (Mitsuba cuda_ad_rgb, 6 images)"
