@@ -1,10 +1,10 @@
 """One tempered SMC step as one compiled call, on the device where the particles are.
 
-:func:`mitsuba_p3.infer.tempering.step` is the kernel as the host sees it: it reweights and
-resamples with numpy, computes each row's walk chart and covariance factor with numpy, and calls
-the move's compiled sweeps (:mod:`mitsuba_p3.infer.smc_moves`) with them. Each of those pieces
-copies the particles between the host and JAX's device, and each copy waits for the device to
-finish. On a CPU that wait is nothing; on a GPU the SMC's per-step work was a loop of small
+:func:`mitsuba_p3.infer.tempering.step` is the kernel as the host sees it: it solves each row's
+increment and resamples in two small compiled calls, gathers the particles and computes each row's
+walk chart and covariance factor with numpy, and calls the move's compiled sweeps
+(:mod:`mitsuba_p3.infer.smc_moves`) with them. Each of those pieces copies between the host and
+JAX's device, and each copy waits for the device to finish. On a CPU that wait is nothing; on a GPU the SMC's per-step work was a loop of small
 launches and copies, and the device waited on the host (``docs/notebook.md``, "Where a GPU
 posterior's seconds went").
 
