@@ -99,6 +99,27 @@ def choose_variant() -> tuple[str, str]:
     return "llvm_ad_rgb", "no CUDA device found; the CPU through LLVM"
 
 
+def jax_on_gpu(platform: str | None = None) -> bool:
+    """Whether JAX runs on a GPU (``platform``: a JAX backend's name; default: the one this process uses)."""
+    if platform is None:
+        import jax
+
+        platform = jax.default_backend()
+    return platform in ("gpu", "cuda", "rocm")
+
+
+def follow_device(env: str, choices: tuple, on_gpu: str, elsewhere: str, error: type,
+                  platform: str | None = None) -> str:
+    """A choice that follows where JAX runs: ``on_gpu`` on a GPU, ``elsewhere`` otherwise; the environment
+    variable ``env`` forces any of ``choices`` (another value is refused with ``error``)."""
+    forced = os.environ.get(env, "").strip()
+    if forced:
+        if forced not in choices:
+            raise error(f"{env}={forced!r}; choose one of {', '.join(choices)}")
+        return forced
+    return on_gpu if jax_on_gpu(platform) else elsewhere
+
+
 def _cuda_available() -> bool:
     """Whether Dr.Jit finds a CUDA device; asks Dr.Jit only where the driver library loads (so a
     machine without one prints none of Dr.Jit's start-up warnings)."""

@@ -19,13 +19,11 @@ def default_particles(renderer: str = "mitsuba", platform: str | None = None) ->
     a GPU are bound by launches and copies, not width: results/gpu/README.md)."""
     from .smc import SMCConfig
 
+    from ..backend import jax_on_gpu
+
     if renderer != "jax":
         return SMCConfig.particles
-    if platform is None:
-        import jax
-
-        platform = jax.default_backend()
-    return GPU_PARTICLES if platform == "gpu" else SMCConfig.particles
+    return GPU_PARTICLES if jax_on_gpu(platform) else SMCConfig.particles
 
 
 def check_sampler_memory(config, hypotheses: int, pixels: int, limit: float | None = None) -> None:

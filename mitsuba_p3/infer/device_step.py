@@ -4,9 +4,9 @@
 increment and resamples in two small compiled calls, gathers the particles and computes each row's
 walk chart and covariance factor with numpy, and calls the move's compiled sweeps
 (:mod:`mitsuba_p3.infer.smc_moves`) with them. Each of those pieces copies between the host and
-JAX's device, and each copy waits for the device to finish. On a CPU that wait is nothing; on a GPU the SMC's per-step work was a loop of small
-launches and copies, and the device waited on the host (``docs/notebook.md``, "Where a GPU
-posterior's seconds went").
+JAX's device, and each copy waits for the device to finish. On a CPU that wait is nothing; on a
+GPU the SMC's per-step work was a loop of small launches and copies, and the device waited on
+the host (``docs/notebook.md``, "Where a GPU posterior's seconds went").
 
 Here the same step is one jitted function of the particles, which never leave the device:
 
@@ -32,7 +32,6 @@ GPU; ``MITSUBA_P3_SMC_STEP`` forces either.
 from __future__ import annotations
 
 import functools
-import os
 
 import numpy as np
 
@@ -48,18 +47,10 @@ def step_for(platform: str | None = None) -> str:
     """Where a plain SMC step runs: ``device`` (one compiled call, :func:`step`) where JAX runs on a GPU,
     ``host`` (:func:`mitsuba_p3.infer.tempering.step`) on a CPU, where a copy to the host is a memcpy in
     the same memory; ``MITSUBA_P3_SMC_STEP`` forces either."""
-    forced = os.environ.get(STEP_ENV, "").strip()
-    if forced:
-        if forced not in STEPS:
-            from ..errors import ConfigError
+    from ..backend import follow_device
+    from ..errors import ConfigError
 
-            raise ConfigError(f"{STEP_ENV}={forced!r}; choose one of {', '.join(STEPS)}")
-        return forced
-    if platform is None:
-        import jax
-
-        platform = jax.default_backend()
-    return "device" if platform in ("gpu", "cuda", "rocm") else "host"
+    return follow_device(STEP_ENV, STEPS, "device", "host", ConfigError, platform)
 
 
 @functools.lru_cache(maxsize=8)

@@ -49,17 +49,10 @@ _EPS = 1e-6  # canonical units: hits closer than this to a ray's origin are igno
 def batching_for(platform: str | None = None) -> str:
     """How a batch of renders runs: ``vmap`` on a GPU (one wide launch), ``map`` elsewhere
     (one image at a time, each class's branch alone); ``MITSUBA_P3_JAX_BATCHING`` forces either."""
-    import os
-
+    from ..backend import follow_device
     from ..errors import SceneError
 
-    forced = os.environ.get(BATCHING_ENV, "").strip()
-    if forced:
-        if forced not in BATCHINGS:
-            raise SceneError(f"{BATCHING_ENV}={forced!r}; choose one of {', '.join(BATCHINGS)}")
-        return forced
-    platform = platform or jax.default_backend()
-    return "vmap" if platform in ("gpu", "cuda", "rocm") else "map"
+    return follow_device(BATCHING_ENV, BATCHINGS, "vmap", "map", SceneError, platform)
 
 
 def camera_frame(camera: Camera, height: int, width: int) -> tuple:
