@@ -8,7 +8,7 @@ export PYTHONPATH=/tmp/site:$PWD
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv | tee $OUT/gpu.txt
 python3 -m mitsuba_p3.cli doctor 2>&1 | tee $OUT/doctor.txt
 echo "== bench_posterior (the JAX tracer: each plain SMC step on the host, then as one compiled call on the device)"
-timeout 240 python3 scripts/bench_posterior.py .devdata/model .devdata/images/*.png --renderer jax --particles 64 \
+timeout 240 python3 scripts/bench_posterior.py .devdata/model .devdata/images/*.png --renderer jax --particles 64 --seeds 2 \
   --steps host,device --truth .devdata/images/truth.json --profile $OUT/profile_steps.txt \
   > $OUT/bench_posterior_steps.json 2> $OUT/bench_posterior_steps.err; tail -5 $OUT/bench_posterior_steps.err
 echo "== tests on the GPU (render, gradients, JAX tracer, backend, Mitsuba inside JAX in place, the SMC step on the device)"
