@@ -163,9 +163,13 @@ def _image_is_done(path: Path, height: int, width: int) -> bool:
         return False
 
 
+RENDERERS = ("mitsuba", "cycles")
+
+
 def generate(variant: str, out: str | Path, seed: int = 0, size: str = "full",
              resolution: tuple[int, int] | None = None, spp: int | None = None,
-             progress: Callable[[int, int], None] | None = None, world: str | Path | None = None) -> Path:
+             progress: Callable[[int, int], None] | None = None, world: str | Path | None = None,
+             renderer: str = "mitsuba", assets: str | Path | None = None) -> Path:
     """Render benchmark ``variant`` into folder ``out``; returns the labels file.
 
     ``world``: a Mitsuba XML to render instead of the variant's own (an edited copy of one; the
@@ -173,19 +177,25 @@ def generate(variant: str, out: str | Path, seed: int = 0, size: str = "full",
     on disk at the right resolution are kept. Refuses a folder that holds a different benchmark
     (other variant, seed, size, resolution or world). ``progress(done, total)`` is called after each
     image.
+
+    ``renderer="cycles"`` renders with Blender Cycles from CLEVR's asset folder ``assets`` instead
+    (:mod:`.cycles`; ``world`` is then a Cycles world JSON, default ``scenes/benchmarks/VARIANT.cycles.json``).
     """
+    check_variant(variant)
+    check_size(size)
+    if renderer not in RENDERERS:
+        raise BenchmarkError(f"unknown renderer {renderer!r}; choose one of {', '.join(RENDERERS)}")
+    if renderer == "cycles":
+        return _generate_cycles(variant, out, seed, size, resolution, spp, progress, world, assets)
+    if assets is not None:
+        raise BenchmarkError("--assets is for --renderer cycles; Mitsuba's worlds name their own files")
     from ..backend import mitsuba
     from ..images import write_png
 
-    check_variant(variant)
-    check_size(size)
     height, width = resolution or DEFAULT_RESOLUTION[size]
     out = Path(out)
-    from ..files import refuse_inside_protected
 
-    refuse_inside_protected(out, "mitsuba-p3 benchmark generate")   # out itself may be this benchmark, resumed
-    if (out / "model.json").is_file():
-        raise BenchmarkError(f"{out} is a fitted model; choose a new --out folder for the benchmark")
+    _check_out(out)
     shipped = world_file(variant)
     world = shipped if world is None else Path(world)
     if not world.is_file():
@@ -205,13 +215,7 @@ def generate(variant: str, out: str | Path, seed: int = 0, size: str = "full",
     world_text = _world_text(world, height, width, spp)
     labels_path = out / LABELS_FILE
     if labels_path.is_file():
-        try:
-            existing = json.loads(labels_path.read_text())
-        except json.JSONDecodeError:
-            existing = None
-        if existing != labels:
-            raise BenchmarkError(f"{out} already holds a different benchmark (labels.json differs); "
-                                 "choose a new --out folder or delete it")
+        _same_benchmark(out, labels)
         scene_path = out / SCENE_FILE
         if scene_path.is_file() and scene_path.read_text() != world_text:
             raise BenchmarkError(f"{world} has changed since {out} was started; finish it with the old XML, "
@@ -231,6 +235,77 @@ def generate(variant: str, out: str | Path, seed: int = 0, size: str = "full",
         scene = mi.load_file(str(out / SCENE_FILE), parallel=False, **overrides)
         linear = np.asarray(mi.render(scene, seed=image.image_seed), dtype=np.float32)
         write_png(out / image.file, srgb_encode(tone_map(linear[..., :3], curve)))
+        done += 1
+        if progress:
+            progress(done, len(images))
+    return labels_path
+
+
+def _check_out(out: Path) -> None:
+    from ..files import refuse_inside_protected
+
+    refuse_inside_protected(out, "mitsuba-p3 benchmark generate")   # out itself may be this benchmark, resumed
+    if (out / "model.json").is_file():
+        raise BenchmarkError(f"{out} is a fitted model; choose a new --out folder for the benchmark")
+
+
+def _same_benchmark(out: Path, labels: dict) -> None:
+    """Refuse resuming into ``out`` unless its labels are exactly the ones this run would write."""
+    try:
+        existing = json.loads((out / LABELS_FILE).read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        existing = None
+    if existing != labels:
+        raise BenchmarkError(f"{out} already holds a different benchmark (labels.json differs); "
+                             "choose a new --out folder or delete it")
+
+
+CYCLES_RESOLUTION = {"full": (240, 320), "small": (120, 160)}   # CLEVR's own image size for full
+CYCLES_WORLD_FILE = "world.json"
+
+
+def _generate_cycles(variant, out, seed, size, resolution, spp, progress, world, assets) -> Path:
+    """:func:`generate` with Blender Cycles and CLEVR's assets (see :mod:`.cycles`)."""
+    from dataclasses import replace
+
+    from .cycles import CyclesRenderer, check_assets, load_world, world_file as cycles_world_file
+
+    if variant == "ood":
+        raise BenchmarkError("the Cycles renderer draws CLEVR's primitives; ood's objects are meshes: "
+                             "use --renderer mitsuba for ood")
+    height, width = resolution or CYCLES_RESOLUTION[size]
+    if height < 8 or width < 8 or (spp is not None and spp < 1):
+        raise BenchmarkError(f"resolution {height}x{width} and spp {spp} are too small")
+    out = Path(out)
+    _check_out(out)
+    check_assets(assets)
+    shipped = cycles_world_file(variant)
+    world_path = shipped if world is None else Path(world)
+    spec = load_world(world_path)
+    spec = replace(spec, samples=spp or (SMALL_SPP if size == "small" else spec.samples))
+    renderer = CyclesRenderer(assets, spec, height, width)
+    images = plan(variant, seed, size)
+    header = {"format": FORMAT, "version": FORMAT_VERSION, "variant": variant, "seed": seed, "size": size,
+              "resolution": [height, width], "spp": spec.samples, "scene": CYCLES_WORLD_FILE,
+              "renderer": "cycles", **({} if world is None else {"world": world_path.name})}
+    labels = {**header, "images": [label_of(im, renderer.lamps(im)) for im in images]}
+    labels_path = out / LABELS_FILE
+    world_text = json.dumps(spec.as_dict(), indent=1, default=str)
+    if labels_path.is_file():
+        _same_benchmark(out, labels)
+        old = out / CYCLES_WORLD_FILE
+        if old.is_file() and old.read_text() != world_text:
+            raise BenchmarkError(f"{world_path} has changed since {out} was started; finish it with the old "
+                                 "world, or choose a new --out folder")
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write(out / CYCLES_WORLD_FILE, world_text)
+    atomic_write(labels_path, json.dumps(labels, indent=1))
+    todo = [im for im in images if not _image_is_done(out / im.file, height, width)]
+    done = len(images) - len(todo)
+    if progress:
+        progress(done, len(images))
+    for image in todo:
+        renderer.render(image, out / image.file)
         done += 1
         if progress:
             progress(done, len(images))

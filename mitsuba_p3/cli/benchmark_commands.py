@@ -18,11 +18,18 @@ def benchmark_generate(
     size: str = typer.Option("full", help="full (BENCHMARK.md counts) or small (built-in example)."),
     resolution: Optional[str] = typer.Option(None, help="HxW (default: 480x640 full, 120x160 small)."),
     spp: Optional[int] = typer.Option(None, help="Samples per pixel (default: the world XML's; 32 small)."),
-    world: Optional[Path] = typer.Option(None, help="A world XML to render instead of the variant's (an "
-                                         "edited copy of scenes/benchmarks/VARIANT.xml); the variant keeps "
+    world: Optional[Path] = typer.Option(None, help="A world to render instead of the variant's (an "
+                                         "edited copy of scenes/benchmarks/VARIANT.xml, or of "
+                                         "VARIANT.cycles.json with --renderer cycles); the variant keeps "
                                          "choosing classes and poses."),
+    renderer: str = typer.Option("mitsuba", help="mitsuba (the project's worlds) or cycles (Blender Cycles "
+                                 "with CLEVR's own assets, as the paper's benchmarks were made; needs "
+                                 "pip install 'mitsuba-p3[blender]' and --assets)."),
+    assets: Optional[Path] = typer.Option(None, help="--renderer cycles: the folder of CLEVR's asset files "
+                                          "(base_scene.blend, shapes/, materials/)."),
 ) -> None:
-    """Render a benchmark with Mitsuba's path tracer (world: scenes/benchmarks/VARIANT.xml, or --world)."""
+    """Render a benchmark with Mitsuba's path tracer (world: scenes/benchmarks/VARIANT.xml, or --world), or
+    with Blender Cycles from CLEVR's assets (--renderer cycles; default size 240x320, CLEVR's)."""
     import time
 
     from ..benchmarks.generate import generate
@@ -40,7 +47,7 @@ def benchmark_generate(
     with bar:
         labels = generate(variant, out, seed=seed, size=size,
                           resolution=(height, width) if height else None, spp=spp, progress=track,
-                          world=world)
+                          world=world, renderer=renderer, assets=assets)
     rendered = counts["done"] - counts["first"]
     seconds = time.perf_counter() - start
     per_image = f", {seconds / rendered:.2f} s/image" if rendered else ""
