@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Install everything mitsuba-p3 needs on a fresh Debian/Ubuntu machine:
 #   1. a libLLVM that Dr.Jit's LLVM backend can use (Debian's libllvm19; LLVM 15 aborts),
-#   2. the Python package, editable, with its test extras.
+#   2. the Python package, editable, with its test extras (and bpy, for the Cycles renderer, on Python 3.11).
 # Idempotent: a second run only checks.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -21,7 +21,8 @@ fi
 # -I: the import must come from the installed package (this clone), not from the working directory
 if ! "$PYTHON" -I -c "import mitsuba_p3.cli, pytest, os, sys; sys.exit(os.path.realpath(mitsuba_p3.__file__) != os.path.realpath('mitsuba_p3/__init__.py'))" 2>/dev/null || [ pyproject.toml -nt .setup-done ]; then
   echo "setup: installing the mitsuba-p3 package and its dependencies"
-  "$PYTHON" -m pip install -q --disable-pip-version-check -e ".[test]"
+  # the blender extra (the Cycles benchmark renderer, and its tests) where bpy exists: Python 3.11
+  "$PYTHON" -m pip install -q --disable-pip-version-check -e ".[test,blender]"
   touch .setup-done
 fi
 "$PYTHON" -m mitsuba_p3.cli doctor >/dev/null
