@@ -4,7 +4,7 @@ Every folder under ``results/`` is a snapshot that a command regenerates; its ``
 which command, at which commit, on what machine and when, so that a reader can tell a current
 figure from a stale one and re-run it. Run it after the command, in the same checkout:
 
-    python scripts/manifest.py results/microfacet --command "python experiments/select_noise.py ..."
+    python scripts/manifest.py results/cycles --command "mitsuba-p3 evaluate ..."
 """
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ def git_commit(root: Path) -> str:
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True)
     if head.returncode:
         return "unknown (not a git checkout)"
-    dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "mitsuba_p3", "scripts", "experiments"],
+    dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "mitsuba_p3", "scripts"],
                            cwd=root).returncode
     return head.stdout.strip() + ("+changes" if dirty else "")
 
