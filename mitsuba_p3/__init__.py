@@ -1,12 +1,31 @@
 """mitsuba-p3: Bayesian inverse graphics for few-shot concept learning.
 
-Scenes (:mod:`mitsuba_p3.scene`) are rendered by the Phong renderers of
-:mod:`mitsuba_p3.render`; Mitsuba is imported lazily through
-:mod:`mitsuba_p3.backend`, which picks a working libLLVM first.
+    >>> import mitsuba_p3 as p3
+    >>> model = p3.load_model("out/model-small")                        # doctest: +SKIP
+    >>> post = p3.infer_image(model, "image.png")                       # doctest: +SKIP
+    >>> post.shape_probabilities, post.estimate()["shift"]              # doctest: +SKIP
+
+The public names (:data:`__all__`) come from :mod:`mitsuba_p3.api` and are imported on first use, so
+``import mitsuba_p3`` stays light. Scenes (:mod:`mitsuba_p3.scene`) are rendered by the Phong renderers
+of :mod:`mitsuba_p3.render`; Mitsuba is imported lazily through :mod:`mitsuba_p3.backend`, which picks a
+working libLLVM first.
 """
 import os as _os
 
 __version__ = "0.1.0"
+__all__ = ["load_model", "load_image", "infer_image", "sampler_config", "Posterior", "__version__"]
+
+
+def __getattr__(name: str):
+    if name == "Posterior":
+        from .infer.posterior import Posterior
+
+        return Posterior
+    if name in __all__:
+        from . import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'mitsuba_p3' has no attribute {name!r}")
 
 
 def _jax_compilation_cache() -> str | None:

@@ -155,18 +155,29 @@ def load_observation(path: str | Path, resolution: tuple[int, int] = INFERENCE_R
         array = np.load(path, allow_pickle=False)
     except (OSError, ValueError) as exc:
         raise ImageError(f"{path}: cannot read array ({exc})") from None
+    return observation_array(array, str(path), resolution)
+
+
+def observation_array(array, source: str = "image", resolution: tuple[int, int] = INFERENCE_RESOLUTION) -> np.ndarray:
+    """An in-memory image (H, W), (H, W, 3) or opaque (H, W, 4) of real numbers in [0, 1] as float32
+    (H, W, 3) at ``resolution``: the checks a ``.npy`` file gets (shape, dtype, finite, range, opaque,
+    aspect), each refused in one line naming ``source``."""
+    array = np.asarray(array)
+    if array.dtype.kind not in "fiub" or array.dtype.kind == "b" or array.size == 0:
+        raise ImageError(f"{source}: expected an image of real numbers in [0, 1], got a {array.dtype} array of "
+                         f"shape {array.shape}")
     array = np.asarray(array, np.float32)
     if array.ndim == 2:
         array = np.repeat(array[..., None], 3, axis=-1)
-    if array.ndim != 3 or array.shape[-1] not in (3, 4):
-        raise ImageError(f"{path}: expected an (H, W, 3) image array, got shape {array.shape}")
+    if array.ndim != 3 or array.shape[-1] not in (3, 4) or min(array.shape[:2]) < 8:
+        raise ImageError(f"{source}: expected an (H, W, 3) image array of at least 8x8, got shape {array.shape}")
     if not np.all(np.isfinite(array)):
-        raise ImageError(f"{path}: the image has NaN or infinite values")
+        raise ImageError(f"{source}: the image has NaN or infinite values")
     if array.min() < 0.0 or array.max() > 1.0:
-        raise ImageError(f"{path}: values must lie in [0, 1] (found {array.min():.3g}..{array.max():.3g}); "
-                             "divide 8-bit data by 255")
+        raise ImageError(f"{source}: values must lie in [0, 1] (found {array.min():.3g}..{array.max():.3g}); "
+                         "divide 8-bit data by 255")
     if array.shape[-1] == 4:
         if not np.all(array[..., 3] >= 1.0 - 1e-6):
-            raise ImageError(f"{path}: the image has transparent pixels; flatten it onto a background first")
+            raise ImageError(f"{source}: the image has transparent pixels; flatten it onto a background first")
         array = array[..., :3]
-    return resize_image(array, resolution, str(path))
+    return resize_image(array, resolution, source)

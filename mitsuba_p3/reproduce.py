@@ -317,7 +317,7 @@ def posterior_figure(folder: Path, model: Path, run_dir: Path, evaluation: Evalu
 
     from .benchmarks.dataset import load_dataset
     from .fit.model import FittedModel
-    from .infer.posterior import default_likelihood, infer_image
+    from .infer.posterior import default_likelihood, sample_posterior
     from .infer.report import write_report
 
     example = run_dir / "example"
@@ -326,7 +326,7 @@ def posterior_figure(folder: Path, model: Path, run_dir: Path, evaluation: Evalu
         shot = example_shot(dataset)
         fitted = FittedModel(model)
         likelihood = default_likelihood(fitted, evaluation.likelihoods[0], evaluation.sigma, evaluation.noise)
-        posterior = infer_image(fitted, dataset.image(shot), likelihood, evaluation.sampler,
+        posterior = sample_posterior(fitted, dataset.image(shot), likelihood, evaluation.sampler,
                                 renderer=evaluation.renderer,
                                 attrs={"image": str(shot.file), "class": shot.class_name})
         write_report(posterior, fitted, example, renderer=evaluation.renderer,

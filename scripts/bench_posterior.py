@@ -42,7 +42,7 @@ def main() -> None:
     from mitsuba_p3.images import load_observation
     from mitsuba_p3.infer.device_step import STEP_ENV, STEPS, step_for
     from mitsuba_p3.infer.likelihood import DEFAULT_NOISE
-    from mitsuba_p3.infer.posterior import default_likelihood, infer_image
+    from mitsuba_p3.infer.posterior import default_likelihood, sample_posterior
     from mitsuba_p3.infer.smc import SMCConfig
     from bench_render import where
 
@@ -62,7 +62,7 @@ def main() -> None:
         config = apply_settings(SMCConfig(particles=particles), args.settings)
         start = time.perf_counter()
         try:
-            infer_image(fitted, images[0], likelihood, config, renderer=args.renderer)
+            sample_posterior(fitted, images[0], likelihood, config, renderer=args.renderer)
         except Exception as error:       # e.g. out of device memory: say so and go on with the next count
             report["runs"][name] = {"failed": f"{type(error).__name__}: {str(error)[:200]}"}
             print(json.dumps({name: report["runs"][name]}), flush=True)
@@ -77,7 +77,7 @@ def main() -> None:
                 profile = cProfile.Profile()
                 profile.enable()
             start = time.perf_counter()
-            posterior = infer_image(fitted, image, likelihood, replace(config, seed=config.seed + seed),
+            posterior = sample_posterior(fitted, image, likelihood, replace(config, seed=config.seed + seed),
                                     renderer=args.renderer)
             if profile is not None:
                 import pstats

@@ -16,7 +16,7 @@ from mitsuba_p3.infer.likelihood import ImageLikelihood, LikelihoodConfig, colou
 from mitsuba_p3.infer.mcmc import SamplerConfig
 from mitsuba_p3.infer.model import PosteriorModel
 from mitsuba_p3.images import load_observation
-from mitsuba_p3.infer.posterior import Posterior, circular_mode, infer_image
+from mitsuba_p3.infer.posterior import Posterior, circular_mode, sample_posterior
 
 RES = (30, 40)
 TRUTH = {"shift": np.array([0.03, -0.02], np.float32), "theta": np.float32(0.4),
@@ -97,7 +97,7 @@ def test_posterior_recovers_a_phong_scene(fitted, observed, tmp_path):
     MH's correctness on a known target, test_sampler_weighs_modes_correctly, and its record)."""
     config = SamplerConfig(chains=16, steps=200, burn_in=100, tune_rounds=4, tune_steps=100, seed=0,
                            material_gibbs=True, walks_per_step=2)
-    posterior = infer_image(fitted, observed, LikelihoodConfig("p3"), config)
+    posterior = sample_posterior(fitted, observed, LikelihoodConfig("p3"), config)
     estimate = posterior.estimate()
     assert np.linalg.norm(np.subtract(estimate["shift"], TRUTH["shift"])) < 0.005
     np.testing.assert_allclose(estimate["scale"], TRUTH["scale"], rtol=0.15)
@@ -120,8 +120,8 @@ def test_sampler_is_reproducible(fitted, observed, tmp_path):
     per-chain diagnostics (R-hat across MH's own chains)."""
     config = SamplerConfig(chains=4, steps=20, burn_in=10, tune_rounds=1, tune_steps=20, block=10,
                            init_candidates=16, seed=7)
-    first = infer_image(fitted, observed, LikelihoodConfig("p3"), config)
-    b = infer_image(fitted, observed, LikelihoodConfig("p3"), config).draws("z")
+    first = sample_posterior(fitted, observed, LikelihoodConfig("p3"), config)
+    b = sample_posterior(fitted, observed, LikelihoodConfig("p3"), config).draws("z")
     np.testing.assert_array_equal(first.draws("z"), b)
     saved = Posterior.load(first.save(tmp_path / "p.nc"))
     np.testing.assert_allclose(saved.draws("shift"), first.draws("shift"))
@@ -137,16 +137,16 @@ def test_compiled_sampler_serves_a_second_image_exactly(fitted, observed):
     config = SamplerConfig(chains=4, steps=20, burn_in=10, tune_rounds=1, tune_steps=20, block=10,
                            init_candidates=16, seed=3)
     other = np.ascontiguousarray(observed[:, ::-1])          # the object mirrored: another posterior
-    infer_image(fitted, observed, LikelihoodConfig("p3"), config)
+    sample_posterior(fitted, observed, LikelihoodConfig("p3"), config)
     cores, hits = len(PosteriorCore._cache), mcmc._block_runner.cache_info().hits
-    reused = infer_image(fitted, other, LikelihoodConfig("p3"), config).draws("z")
+    reused = sample_posterior(fitted, other, LikelihoodConfig("p3"), config).draws("z")
     assert len(PosteriorCore._cache) == cores and mcmc._block_runner.cache_info().hits > hits
     PosteriorCore._cache.clear()
     mcmc._block_runner.cache_clear()
     mcmc._batch_logdensity.cache_clear()
-    fresh = infer_image(fitted, other, LikelihoodConfig("p3"), config).draws("z")
+    fresh = sample_posterior(fitted, other, LikelihoodConfig("p3"), config).draws("z")
     np.testing.assert_allclose(reused, fresh, atol=1e-5)
-    first = infer_image(fitted, observed, LikelihoodConfig("p3"), config).draws("z")
+    first = sample_posterior(fitted, observed, LikelihoodConfig("p3"), config).draws("z")
     assert np.abs(np.median(first[..., 0]) - np.median(reused[..., 0])) > 0.5   # shift x follows the image
 
 
@@ -528,7 +528,7 @@ def test_an_smc_run_with_its_plain_steps_on_the_device_is_a_whole_run(fitted, ob
     runs = {}
     for where in ("host", "device"):
         monkeypatch.setenv("MITSUBA_P3_SMC_STEP", where)
-        runs[where] = infer_image(fitted, observed, likelihood, config)
+        runs[where] = sample_posterior(fitted, observed, likelihood, config)
     host, device = (runs[w].statistic("steps") for w in ("host", "device"))
     assert host[0] == device[0] and len(device) >= 4
     np.testing.assert_allclose(device[1]["tempering"], host[1]["tempering"], atol=1e-6)
@@ -1244,7 +1244,7 @@ def test_smc_runs_every_hypothesis_and_keeps_their_evidence(fitted, tmp_path, ki
     observed = make_renderer_image(fitted)
     # a likelihood as sharp as the fitted ones (sigma 0.03, a power for correlated pixels)
     likelihood = LikelihoodConfig("p3", sigma=0.03, power=0.05, shadows=True)
-    posterior = infer_image(fitted, observed, likelihood, SMCConfig(particles=8, mcmc_steps=1, final_steps=1,
+    posterior = sample_posterior(fitted, observed, likelihood, SMCConfig(particles=8, mcmc_steps=1, final_steps=1,
                                                                     draws=200, kinds=kinds, islands=islands,
                                                                     rounds=rounds, decided=0.999))
     attrs = posterior.idata.posterior.attrs
@@ -1457,7 +1457,7 @@ def test_bridge_from_p3_adds_the_neural_terms_evidence(fitted):
 
 @pytest.mark.slow
 def test_np3_under_smc_is_p3_then_the_bridge(fitted):
-    """infer_image's NP3 SMC run is P3's run followed by the bridge: started from P3's particles by
+    """sample_posterior's NP3 SMC run is P3's run followed by the bridge: started from P3's particles by
     hand, it is the same posterior; --no-bridge tempers NP3 from the prior instead (another run)."""
     from dataclasses import replace
 
@@ -1467,13 +1467,13 @@ def test_np3_under_smc_is_p3_then_the_bridge(fitted):
     # (without the wide start, which is not what this tests: one compilation less)
     config = SMCConfig(wide_steps=0, particles=8, mcmc_steps=1, final_steps=1, draws=40, window=None)
     p3, np3 = (LikelihoodConfig(kind, sigma=0.03, power=0.05, shadows=True) for kind in ("p3", "np3"))
-    by_hand = infer_image(fitted, observed, np3, config, start=infer_image(fitted, observed, p3, config).particles)
-    bridged = infer_image(fitted, observed, np3, config)
+    by_hand = sample_posterior(fitted, observed, np3, config, start=sample_posterior(fitted, observed, p3, config).particles)
+    bridged = sample_posterior(fitted, observed, np3, config)
     np.testing.assert_array_equal(bridged.draws("z"), by_hand.draws("z"))
-    from_prior = infer_image(fitted, observed, np3, replace(config, bridge=False))
+    from_prior = sample_posterior(fitted, observed, np3, replace(config, bridge=False))
     assert not np.array_equal(from_prior.draws("z"), bridged.draws("z"))
     with pytest.raises(MitsubaP3Error, match="only an SMC run"):
-        infer_image(fitted, observed, np3, SamplerConfig(chains=2, steps=4), start=bridged.particles)
+        sample_posterior(fitted, observed, np3, SamplerConfig(chains=2, steps=4), start=bridged.particles)
 
 
 def make_renderer_image(fitted):
@@ -1726,7 +1726,7 @@ def test_infer_names_the_material_by_a_rule_saved_by_evaluate(fitted, observed, 
         assert read.decide(query, misfit)["p_metal"] == pytest.approx(learnt.decide(query, misfit)["p_metal"])
     assert read.decide(query, 6.0)["material"] == "metal" and read.decide(query, 1.2)["material"] == "rubber"
 
-    posterior = infer_image(fitted, observed, LikelihoodConfig("p3", sigma=0.3),
+    posterior = sample_posterior(fitted, observed, LikelihoodConfig("p3", sigma=0.3),
                             SamplerConfig(chains=2, steps=10, burn_in=5, tune_rounds=1, tune_steps=10, block=5,
                                           init_candidates=16))
     write_report(posterior, fitted, tmp_path / "out", rules=read)
@@ -1762,7 +1762,7 @@ def test_an_empty_floor_is_answered_as_nothing_and_an_object_as_one(fitted):
     renderer = make_renderer(fitted.scene(), "mitsuba", height=120, width=160, shadows=True)
     factors = {}
     for name, image in (("empty", renderer.render_empty()), ("object", renderer.render(TRUTH))):
-        posterior = infer_image(fitted, image, likelihood, config)
+        posterior = sample_posterior(fitted, image, likelihood, config)
         factors[name] = posterior.statistic("log_bayes_factor_object")
         warnings = range_warnings(posterior, fitted, {"log_bayes_factor_object": factors[name]})
         assert any("no object" in w for w in warnings) == (name == "empty"), (name, warnings)

@@ -8,6 +8,7 @@ from typing import List, Optional
 
 import typer
 
+from ..api import DEFAULT_LIKELIHOOD, DEFAULT_RENDERER, DEFAULT_SAMPLER
 from ..concepts import DistanceConfig
 from ..evaluate.config import PRESET
 from ..fit.model import DEFAULT_STARTS
@@ -47,21 +48,10 @@ BRIDGE_HELP = ("NP3 under SMC: start from P3's posterior of the image and temper
 
 def choose_sampler(name: str, mh: SamplerConfig, particles: int | None, noise: str, sigma: float | None,
                    bridge: bool = SMCConfig.bridge, renderer: str = "mitsuba") -> SamplerConfig | SMCConfig:
-    """The sampler a command's --sampler names: the MH settings given, or SMC with their seed; ``auto``
-    is SMC under a fitted noise model and MH under the paper's (the sampler each was measured with).
-    SMC's particles default to what the renderer is measured best with where this runs
-    (:func:`mitsuba_p3.infer.smc.default_particles`)."""
-    from ..errors import ConfigError
-    from ..infer.smc import default_particles
+    """The sampler a command's --sampler names (:func:`mitsuba_p3.api.sampler_config`, the Python API's)."""
+    from ..api import sampler_config
 
-    if name == "auto":
-        name = "mh" if noise == "paper" or sigma is not None else "smc"
-    if name == "mh":
-        return mh
-    if name == "smc":
-        return SMCConfig(particles=default_particles(renderer) if particles is None else particles, seed=mh.seed,
-                         bridge=bridge)
-    raise ConfigError(f"unknown sampler {name!r}; choose auto, smc or mh")
+    return sampler_config(name, noise, sigma, particles, mh.seed, bridge, renderer, mh)
 
 
 @app.command()
@@ -148,16 +138,16 @@ def infer(
     burn_in: int = sampler_option("burn_in", SamplerConfig),
     tune_rounds: int = sampler_option("tune_rounds", SamplerConfig),
     tune_steps: int = sampler_option("tune_steps", SamplerConfig),
-    sampler: str = typer.Option("auto", help=SAMPLER_HELP_TEXT),
+    sampler: str = typer.Option(DEFAULT_SAMPLER, help=SAMPLER_HELP_TEXT),
     particles: Optional[int] = typer.Option(None, help=PARTICLES_HELP),
     bridge: bool = typer.Option(SMCConfig.bridge, "--bridge/--no-bridge", help=BRIDGE_HELP),
     settings: Optional[List[str]] = typer.Option(None, "--set", help=SET_HELP),
     config_file: Optional[Path] = typer.Option(None, "--config", help=CONFIG_HELP),
-    likelihood: str = typer.Option("np3", help="p3 (colour) or np3 (colour + neural)."),
+    likelihood: str = typer.Option(DEFAULT_LIKELIHOOD, help="p3 (colour) or np3 (colour + neural)."),
     noise: str = typer.Option(DEFAULT_NOISE, help=NOISE_HELP),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
                                                      "dark set)."),
-    renderer: str = typer.Option("mitsuba", help="mitsuba (pure_callback) or jax (native tracer)."),
+    renderer: str = typer.Option(DEFAULT_RENDERER, help="mitsuba (pure_callback) or jax (native tracer)."),
     seed: int = typer.Option(0, help="Sampler seed."),
     material_rule: Optional[Path] = typer.Option(
         None, help="A material-kind rule learnt from train posteriors (RUN/material-rule-p3.json, written by "
@@ -166,7 +156,7 @@ def infer(
     """Sample the posterior over an image's object (pose, size, class, material); write it and figures."""
     from ..fit.model import FittedModel
     from ..images import load_observation
-    from ..infer.posterior import default_likelihood, infer_image
+    from ..infer.posterior import default_likelihood, sample_posterior
     from ..files import claim_output_folder, folder_lock
     from ..infer.report import read_material_rule, write_report
 
@@ -182,7 +172,7 @@ def infer(
         bar, track = phase_progress_bar("sampling")
 
         with bar:
-            posterior = infer_image(fitted, observed, default_likelihood(fitted, likelihood, sigma, noise), config,
+            posterior = sample_posterior(fitted, observed, default_likelihood(fitted, likelihood, sigma, noise), config,
                                     renderer=renderer, progress=track, attrs={"image": str(image)})
         written = write_report(posterior, fitted, output, renderer=renderer, rules=rules)
     report = json.loads(Path(written["estimate"]).read_text())

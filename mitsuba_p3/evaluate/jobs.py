@@ -111,17 +111,17 @@ def posterior_job(dataset_dir: str, model_dir: str, index: int, likelihood: str,
         _exit_with_parent()
         _limit_threads(threads, config.renderer)
     from ..fit.model import FittedModel
-    from ..infer.posterior import default_likelihood, infer_image
+    from ..infer.posterior import default_likelihood, sample_posterior
 
     dataset = load_dataset(dataset_dir)
     shot = dataset.shots[index]
     fitted = FittedModel(model_dir)
     # a bridged NP3 run starts from P3's particles of the same image when P3's job cached them
-    # (else infer_image runs P3 first: the same particles, since the sampler is seeded)
+    # (else sample_posterior runs P3 first: the same particles, since the sampler is seeded)
     bridged = likelihood == "np3" and getattr(config.sampler, "bridge", False)
     start_from = _cached_particles(posterior_path(Path(out).parents[2], "p3", index)) if bridged else None
     start = time.perf_counter()
-    posterior = infer_image(fitted, dataset.image(shot), default_likelihood(fitted, likelihood, config.sigma, config.noise),
+    posterior = sample_posterior(fitted, dataset.image(shot), default_likelihood(fitted, likelihood, config.sigma, config.noise),
                             config.sampler, renderer=config.renderer, start=start_from)
     seconds = time.perf_counter() - start
     estimate = posterior.estimate()

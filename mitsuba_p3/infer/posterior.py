@@ -1,6 +1,6 @@
 """Run inference on one image and keep the posterior as ArviZ InferenceData.
 
-:func:`infer_image` ties the pieces together: observed image -> :class:`PosteriorModel`
+:func:`sample_posterior` ties the pieces together: observed image -> :class:`PosteriorModel`
 -> :func:`mcmc.sample` -> :class:`Posterior` (InferenceData with the constrained
 values, the unconstrained draws, log-likelihoods and sampler statistics).
 Point estimates are posterior medians, the class is the most frequent one and
@@ -45,6 +45,16 @@ class Posterior:
 
     idata: object  # arviz.InferenceData
     particles: object = None  # an SMC run's final particles (not saved): an NP3 run may start from P3's
+
+    @property
+    def shape_probabilities(self) -> dict[str, float]:
+        """The posterior probability of each shape class: the share of draws of that class."""
+        kappa = self.draws("kappa").astype(int)
+        return dict(zip(SHAPES, (np.bincount(kappa, minlength=len(SHAPES)) / len(kappa)).tolist()))
+
+    def to_arviz(self):
+        """The posterior as ArviZ ``InferenceData`` (posterior, log likelihood, sample stats, observed image)."""
+        return self.idata
 
     def draws(self, name: str) -> np.ndarray:
         """All draws of a variable, chains merged: (chains * draws, ...)."""
@@ -146,7 +156,7 @@ def to_inference_data(model: PosteriorModel, run: SamplerRun | SMCRun, observed:
     return Posterior(idata)
 
 
-def infer_image(fitted: FittedModel, observed: np.ndarray, likelihood: LikelihoodConfig | None = None,
+def sample_posterior(fitted: FittedModel, observed: np.ndarray, likelihood: LikelihoodConfig | None = None,
                 sampler: SamplerConfig | SMCConfig | None = None, renderer: str = "mitsuba",
                 progress: Callable[[str, int, int], None] | None = None, attrs: dict | None = None,
                 start=None) -> Posterior:
