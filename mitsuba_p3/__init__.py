@@ -49,8 +49,7 @@ def _xla_flags(flags: str, jaxlib_version: str | None) -> str:
 
     From jaxlib 0.8.1 on, XLA's CPU backend hands small fused element-wise ops, reductions and dots
     to YNNPACK. A posterior's are small (a 3 x 3 block or three colours per particle, over the SMC's
-    particles) and take less time in XLA's own loops: the same arithmetic up to float32 rounding
-    (docs/notebook.md, "XLA's YNNPACK fusions and a posterior's seconds"). Flags that already name
+    particles) and take less time in XLA's own loops: the same arithmetic up to float32 rounding. Flags that already name
     the YNNPACK fusions are left as they are, and ``MITSUBA_P3_YNNPACK=on`` leaves XLA's default.
     An older jaxlib has no such flag, and XLA stops a process on a flag it does not know, so none is
     added there."""

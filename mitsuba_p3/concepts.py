@@ -45,7 +45,7 @@ predictive density of a scale mixture of Gaussians), whose degrees of freedom
 the differences between two train images' posterior means of one class
 (:func:`fit_tail`), so a far gap costs about its log. Fitted, not chosen by
 accuracy; held-out train classes' episodes decided that fitted tails replace
-Gaussian kernels (``experiments/select_concept_tails.py``, docs/notebook.md).
+Gaussian kernels.
 
 **The KL's direction.** The paper's KL(C_k || C_I) draws from the class
 program and asks the query's posterior to explain every draw. A K-shot class
@@ -57,8 +57,7 @@ for every class, so softmax_k(-KL(C_I || C_k)) weighs each class by the
 expected log predictive density of the query's posterior under the concept,
 which a mixture of shots makes larger, not smaller. In 1-shot episodes, with
 both programs one posterior, the two directions differ little. Chosen on
-held-out train classes' 1- and 5-shot episodes (``experiments/select_spread.py
---shots 1,5 --directions ...``; docs/notebook.md); ``class||image`` is the paper's.
+held-out train classes' 1- and 5-shot episodes; ``class||image`` is the paper's.
 
 Every density of the project speaks one vocabulary: ``log_prob(x)`` and
 ``sample(rng, n)`` (:class:`GaussianKde`, :class:`ProtoProgram`, and the prior's
@@ -90,7 +89,7 @@ class DistanceConfig:
     # train images per train class whose posteriors fit the programs' ConceptSpread (0: the paper's programs)
     spread_shots: int = 3
     # the KL's direction: "image||class" (KL(C_I || C_k); chosen on held-out train classes' 1- and 5-shot
-    # episodes, docs/notebook.md) or "class||image" (the paper's, KL(C_k || C_I))
+    # episodes) or "class||image" (the paper's, KL(C_k || C_I))
     direction: str = "image||class"
     # the concept's kernels: Student-t of tails fitted on train classes (True) or Gaussian (False)
     tails: bool = True

@@ -441,9 +441,8 @@ def write_paper_tables(out: Path, results: dict) -> None:
             "spread fitted on train classes unless marked 'no concept spread' (Student-t kernels whose tails are "
             "fitted there too, unless marked 'Gaussian concept kernels'), each KL turned round "
             "(KL(C_I || C_k)) unless marked 'KL(class || image)', the paper's direction. Sigma and distance "
-            "terms were chosen on train classes (experiments/select_sigma.py, experiments/select_distance.py), the "
-            "spread, its tails and the KL's direction on held-out train classes (experiments/select_spread.py, "
-            "experiments/select_concept_tails.py). "
+            "terms were chosen on train classes, the "
+            "spread, its tails and the KL's direction on held-out train classes. "
             "The paper's numbers are on its own data sets: compare in spirit.\n")
     atomic_write(out / "accuracy.md", markdown_table(header, rows) + note)
     with atomic_open(out / "accuracy.csv") as f:

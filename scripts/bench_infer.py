@@ -34,7 +34,7 @@ Gaussian noise model with hard shadows (the default likelihood before 2026-11-27
 inlier/outlier mixture; ``smc-persistent`` and ``smc-wastefree`` the default with persistent
 sampling or waste-free SMC (8 sweeps kept from 32 of 256 particles); ``smc-narrow`` the default without its
 coarse wide start, rendered turns, chart walk or window term (the default before 2026-11-26); ``smc-window-alone``
-the default scoring a scene whose object left the window by the window alone (the default until the eighth session,
+the default scoring a scene whose object left the window by the window alone (the default until 2026-11-27,
 ``SMCConfig.inside_window``); ``smc-unfolded`` the default
 with the walk in z, not in a symmetry chart (the default before the chart walk); ``smc-jump`` the default with
 the material kind's jump; ``smc-fields-rounds4`` the default with up to four rounds of runs where the answer
@@ -73,7 +73,7 @@ from mitsuba_p3.infer.smc import SMCConfig
 
 CONFIGS = {"mh-paper": {"noise": "paper"}, "mh-fitted": {"noise": "fitted"},
            "smc": {"noise": "fitted", "sampler": SMCConfig()}, "smc-robust": {"noise": "robust", "sampler": SMCConfig()},
-           # the moves issue 40 asked to compare (docs/notebook.md): persistent sampling, waste-free SMC
+           # the moves compared against the default: persistent sampling, waste-free SMC
            "smc-persistent": {"noise": "fitted", "sampler": SMCConfig(persistent=True, wide_steps=0)},
            "smc-wastefree": {"noise": "fitted", "sampler": SMCConfig(waste_free=8, particles=256, wide_steps=0)},
            "smc-narrow": {"noise": "fitted", "sampler": SMCConfig(wide_steps=0, symmetry="free", chart=False,

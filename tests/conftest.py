@@ -11,7 +11,7 @@ SCENES = ROOT / "scenes"
 VARIANTS = ("fsclvr", "dark", "room", "ood")
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def mi():
     from mitsuba_p3.backend import mitsuba
     from mitsuba_p3.render import phong  # noqa: F401  (registers the phong plugins)

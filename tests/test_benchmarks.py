@@ -26,7 +26,7 @@ from .conftest import ROOT
 TINY = dict(size="small", resolution=(30, 40), spp=4)
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def tiny_fsclvr(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench") / "fsclvr"
     generate("fsclvr", out, seed=5, **TINY)

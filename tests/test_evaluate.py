@@ -114,13 +114,13 @@ def test_workers_die_with_a_killed_evaluate(bench, tmp_path):
                str(bench / "model"), "--out", str(tmp_path / "run"), "--likelihoods", "p3", "--jobs", "2",
                *SAMPLER_FLAGS]
     main = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    session = os.getsid(main.pid)
+    group = os.getsid(main.pid)
 
     def others():
         alive = []
         for entry in os.listdir("/proc"):
             try:
-                if entry.isdigit() and int(entry) != main.pid and os.getsid(int(entry)) == session:
+                if entry.isdigit() and int(entry) != main.pid and os.getsid(int(entry)) == group:
                     alive.append(int(entry))
             except (ProcessLookupError, PermissionError):
                 pass

@@ -102,7 +102,7 @@ def test_white_lights_stay_achromatic_while_the_fit_moves_them(tiny_dataset):
 
 def test_the_fit_seed_sets_the_lights_random_start():
     """fit --seed S: the lights' start (positions and intensities in the light box) is drawn from S; one seed gives
-    one start, another a different one (the fit's local optimum depends on it: docs/notebook.md)."""
+    one start, another a different one."""
     from mitsuba_p3.fit.scene_opt import initial_globals
 
     def start(seed):
@@ -1194,3 +1194,25 @@ def test_the_loop_cholesky_is_lapacks():
     inverse = np.linalg.inv(a[0, 0])
     np.testing.assert_allclose(np.asarray(gradient), np.tril(2 * inverse) - np.diag(np.diag(inverse)), atol=1e-4)
     np.testing.assert_allclose(np.asarray(log_det), np.linalg.slogdet(a)[1], atol=1e-4)
+
+
+@pytest.mark.slow      # a default NP3 posterior: about 3 minutes on 2 cores
+def test_the_readmes_python_example_runs(tiny_model, tiny_dataset, tmp_path, monkeypatch):
+    """The README's Python example, run as written with the model and image paths pointed at a tiny fitted
+    model and one of its data set's test images: it must keep working as the API changes."""
+    import json
+    import re
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    code = re.search(r"## From Python\n\n```python\n(.*?)```", readme, re.S).group(1)
+    assert len(code.splitlines()) <= 10
+    image = next(r["file"] for r in json.loads((tiny_dataset / "labels.json").read_text())["images"]
+                 if r["split"] == "test")
+    code = code.replace('"out/model-small"', repr(str(tiny_model.root)))
+    code = re.sub(r'"out/fsclvr-small/test/[^"]+"', repr(str(tiny_dataset / image)), code)
+    monkeypatch.chdir(tmp_path)
+    scope: dict = {}
+    exec(compile(code, "README.md", "exec"), scope)
+    assert abs(sum(scope["post"].shape_probabilities.values()) - 1.0) < 1e-6
+    assert (tmp_path / "post.nc").is_file() and "posterior" in scope["idata"].groups()

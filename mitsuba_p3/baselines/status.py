@@ -1,7 +1,7 @@
 """How far each baseline's training got, from its checkpoint alone: one row per training folder.
 
-A baseline trains to early stopping over several working sessions (``mitsuba-p3 baseline train-all``
-resumes its checkpoint), so the question "where is it?" comes back each session. The answer is in
+A baseline trains to early stopping over several runs (``mitsuba-p3 baseline train-all`` resumes its
+checkpoint), so the question "where is it?" comes back each time. The answer is in
 the folder: the checkpoint says the iterations done, the validation accuracy at every checkpoint,
 the kept (best) iteration and whether training stopped; a score file, if the kept network has been
 scored, says its test accuracy. :func:`status_table` writes the rows as the markdown table the

@@ -31,10 +31,10 @@ NOISE_HELP = ("Noise model: fitted (the Gaussian fitted to the model's train res
 SPREAD_HELP = ("Train images per train class whose posteriors fit the protoprograms' concept spread "
                "(sampled like the test images; 0: the paper's programs, tables in RUN/spread0).")
 TAILS_HELP = ("The concept's kernels: Student-t ones whose tails and scale are fitted on train classes "
-              "(--concept-tails; chosen on held-out train classes' episodes, docs/notebook.md) or Gaussian "
+              " or Gaussian "
               "(--gaussian-concepts; tables in RUN/gaussian-concepts).")
 KL_HELP = ("The distance's KL direction: image||class (KL(C_I || C_k), chosen on held-out train classes' 1- and "
-           "5-shot episodes, docs/notebook.md) or class||image (the paper's; tables in RUN/kl-class-image).")
+           "5-shot episodes) or class||image (the paper's; tables in RUN/kl-class-image).")
 SAMPLER_HELP_TEXT = ("auto (smc under a fitted noise model, mh under the paper's), smc (tempered SMC over the "
                      "shape classes, weighed by their evidence) or mh (multi-chain Metropolis-Hastings; the chain "
                      "options apply).")
@@ -81,7 +81,7 @@ def fit(
                                                   "no falloff, the paper's)."),
     light_colour: str = typer.Option(SceneOptConfig.light_colour,
                                      help="white: achromatic lights, the light's tint left to the fitted colours "
-                                          "(chosen on train classes, docs/notebook.md); free: each light an RGB "
+                                          "; free: each light an RGB "
                                           "intensity (the paper's)."),
     seed: str = typer.Option(",".join(map(str, DEFAULT_STARTS)),
                              help="Seeds of the lights' random starts (positions and intensities in the light "
@@ -249,7 +249,7 @@ def evaluate(
     settings: Optional[List[str]] = typer.Option(None, "--set", help=SET_HELP),
     config_file: Optional[Path] = typer.Option(None, "--config", help=CONFIG_HELP),
     noise: str = typer.Option(DEFAULT_NOISE, help=NOISE_HELP + f" {DEFAULT_NOISE}, chosen on train classes "
-                                                  "(docs/notebook.md); paper reproduces the paper's rows."),
+                                                  "; paper reproduces the paper's rows."),
     sigma: Optional[float] = typer.Option(None, help="The paper's likelihood at this sigma (it used 0.35 on its "
                                                      "dark set)."),
     distance: str = typer.Option("all", help="Distance terms: 'all' (the paper's) or some joined by '+', e.g. "

@@ -276,11 +276,10 @@ class PosteriorMisfits:
         return self(index, posterior) if rules.reads_misfit else None
 
 
-# The material rule's features, chosen on train classes, each class held out in turn
-# (``experiments/select_material_rule.py``, 90 train posteriors of fsclvr / room / dark at 120x160): the
+# The material rule's features, chosen on train classes, each class held out in turn: the
 # Phong weights, the reflectance's saturation and the Phong misfit scored 92.2 / 94.4 / 95.6%,
 # against 91.1 / 94.4 / 90.0% without the misfit and 85.6 / 90.0 / 81.1% for the weights alone.
-# The saturation alone did not carry over to the test splits (75.8 / 86.7 / 75.8%, docs/notebook.md);
+# The saturation alone did not carry over to the test splits;
 # the misfit measures what Phong cannot render, not a colour, and reads the same on every set.
 MATERIAL_RULE_FEATURES = "weights+saturation+misfit"
 
@@ -292,10 +291,8 @@ def rules_with_train_posteriors(rules, dataset: Dataset, run_dir: Path, likeliho
     :data:`MATERIAL_RULE_FEATURES`, or without the misfit when ``misfits`` is None or unavailable),
     when it holds posteriors of both kinds, and the colour centres moved to those posteriors' (:meth:`~mitsuba_p3.
     fit.attributes.AttributeRules.with_colours_from_posteriors`). Chosen on train classes: learnt from
-    posteriors, the material rule beats the one learnt from the fit's materials
-    (``experiments/select_material_rule.py``), and the colour centres read every train colour under the
-    fit's kept start where the fit's own centres can be tinted (``experiments/select_colour_centres.py``;
-    docs/notebook.md)."""
+    posteriors, the material rule beats the one learnt from the fit's materials, and the colour centres read every train colour under the
+    fit's kept start where the fit's own centres can be tinted."""
     posteriors = cached_train_posteriors(dataset, run_dir, likelihood)
     learnt = rules_learnt_from(rules, posteriors, dataset.class_labels, MATERIAL_RULE_FEATURES, misfits)
     return colours_learnt_from(learnt, posteriors, dataset.class_labels)

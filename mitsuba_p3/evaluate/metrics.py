@@ -91,8 +91,7 @@ def held_out_accuracy(programs: dict[str, list[ProtoProgram]], n_way: int, episo
                       config: DistanceConfig, k_shot: int = 1) -> float:
     """Mean accuracy of seeded N-way K-shot episodes over the classes of ``programs`` (class -> its
     shots' programs, K + 1 or more): per chosen class K shots, merged, are the support and another
-    is the query. For choices made on train classes (``experiments/select_sigma.py``,
-    ``experiments/select_distance.py``, ``experiments/select_spread.py``)."""
+    is the query. For choices made on train classes."""
     short = [c for c in sorted(programs) if len(programs[c]) < k_shot + 1]
     if short:
         raise ValueError(f"{k_shot}-shot episodes need {k_shot + 1} programs per class; "

@@ -53,8 +53,7 @@ KINDS = ("rubber", "metal")
 # How the material rule weighs its training examples by kind: "balanced", each kind's examples weighed to half
 # of the total, a prior of one half on each kind (half of the 96 primitive classes are of each, and a benchmark's
 # train and test classes are drawn from them alike); None, as they come, the prior then the kind's share of the
-# train classes. The two are level on held-out train classes; balanced is chosen for the prior the protocol fixes
-# (docs/notebook.md, "A kind's prior is a half").
+# train classes. The two are level on held-out train classes; balanced is chosen for the prior the protocol fixes.
 KIND_WEIGHTS = "balanced"
 # a model folder's attribute rules learnt from the material at its train images' true poses
 # (mitsuba_p3.infer.truth_rules; rules_for reads them)
@@ -150,8 +149,7 @@ class AttributeRules:
         """The same rules with each fitted material's colour centre moved to the mean chromaticity of
         the median reflectances of the *train* posteriors of its colour and kind (``samples`` with their
         labelled ``colours`` and ``kinds``), as the material rule is learnt from posteriors: the centre
-        is then the kind of input it is compared with (a start of the fit can tint its materials: the
-        notebook's "Keep the start the noise model explains best"). A centre without such posteriors,
+        is then the kind of input it is compared with (a start of the fit can tint its materials). A centre without such posteriors,
         or a label RGB's, is kept."""
         from dataclasses import replace
 

@@ -29,7 +29,7 @@ IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
 # mean subtracted and no division by the std: its conv1 inputs are 255 * std (about 57.6) times
 # larger than the normalised inputs these torchvision weights expect. Feature differences are
 # scaled by that factor (exact for conv1_1 pre-ReLU, whose bias cancels in a difference), so the
-# squared distance and the weight 0.05 are on the paper's scale (experiments/neural_scale.py measures it).
+# squared distance and the weight 0.05 are on the paper's scale.
 PAPER_FEATURE_SCALE = 255.0 * float(IMAGENET_STD.mean())
 
 
@@ -93,7 +93,7 @@ def _conv3x3(x, kernel):
     innermost axis is the image's width. Inside the SMC's material move (384 particles, 56x72
     windows) a move then costs 0.45 s, against 1.84 s for the same sums over channels-last
     pixels (XLA vectorised those over the 3 channels) and 0.46 s with XLA's convolution, which
-    costs a walk 122 ms against these sums' 85 ms (docs/notebook.md)."""
+    costs a walk 122 ms against these sums' 85 ms."""
     import jax
     import jax.numpy as jnp
 

@@ -2,8 +2,7 @@
 
 The Phong model's residuals against a path tracer's images are correlated, and most of
 the correlation is the object's own: a metal mirrors the floor and the sky, a rubber's
-shading is softer than Phong's, a soft shadow's edge is wider than a hard one
-(``experiments/probe_residuals.py``). The fitted Gaussian answers with one power
+shading is softer than Phong's, a soft shadow's edge is wider than a hard one. The fitted Gaussian answers with one power
 beta = 1 / A for the whole window (A the residuals' correlation area), which divides
 the outline's evidence as much as the shading's; a stationary field (the spectral
 form) discounts any blob anywhere, so an absent object borrows the blobs a metal
@@ -45,7 +44,7 @@ the object's own pixels load on the hypothesis's colour c as c / mean(c) (:func:
 object's loading is the achromatic one): they brighten or darken the object in its own colour, as an
 error in the light it receives would, and cannot wash its colour out towards gray. An achromatic constant on a flat face is a gray offset that trades
 freely against the colour's saturation, and the colour prior's pull to gray then desaturates a cube's or
-a cylinder's colour (docs/notebook.md, "A field that cannot wash a colour out"). ``sheened`` fields are
+a cylinder's colour. ``sheened`` fields are
 tinted ones with a second, achromatic field on the object's pixels (its own taus, after the regions'):
 a dielectric's white sheen is not the colour's, and tinted fields leave it to the specular weight. The
 other regions' loadings are padded with zero columns, which the density ignores exactly (a zero
@@ -68,14 +67,13 @@ the same density at a white scale sigma / sqrt(beta) (:attr:`FieldsNoise.white_s
 the taus as fitted; the constant is the same for every hypothesis of a window. Raising the
 whole marginal to beta instead would temper the fields' prior too, as if their scales were
 tau / sqrt(beta), so that the object's field can paint a sphere's shading onto a flat disc
-for nearly nothing (docs/notebook.md, "The fields' power belongs to the pixels").
+for nearly nothing.
 
 **An image's own scale.** sigma and the taus are the train split's, but an image the
 model renders worse than its train images (a path tracer's metal, an object no primitive
 fits, lights the fit never saw) leaves residuals several times larger, and at the train
 scale every pose that explains a little more of them is then worth tens of nats: runs of
-the same hypothesis settle on different isolated poses and the seeds disagree
-(docs/notebook.md). The image's noise scale is therefore unknown, C = s^2 C_1 with C_1 =
+the same hypothesis settle on different isolated poses and the seeds disagree. The image's noise scale is therefore unknown, C = s^2 C_1 with C_1 =
 (sigma^2 / beta) I + B T B' as above, and integrated out under a conjugate inverse-gamma
 prior s^2 ~ IG(a, b):
 
@@ -109,12 +107,10 @@ CHANNELS = ("independent", "achromatic", "mixed", "tinted", "sheened")
 COLOURED = ("tinted", "sheened")
 # the loading the noise stage fits: independent fields forgive a wrong colour (on fsclvr's and studio's train
 # images the nearest wrong colour of the same kind cost 4-9 nats against the fitted Gaussian's 186-222, and
-# beat the truth in 3-4 of 12); achromatic ones keep it (193 both) and keep most of the outline's gain
-# (experiments/probe_object_fields.py --channels; results/fields/README.md), but let a flat face's colour wash
+# beat the truth in 3-4 of 12); achromatic ones keep it (193 both) and keep most of the outline's gain, but let a flat face's colour wash
 # out towards gray; tinted ones explain the train residuals better (marginal log likelihood per pixel on 24
 # train windows, dark 7.79 against 7.58, room 6.39 against 6.30; the correlation they leave 46 against 68 and
-# 24 against 35 pixels) and a wash-out beats the truth in 1 of dark's 24 probed images against 4
-# (docs/notebook.md, "A field that cannot wash a colour out"); sheened ones fit better still (dark 7.90, room 6.43)
+# 24 against 35 pixels) and a wash-out beats the truth in 1 of dark's 24 probed images against 4; sheened ones fit better still (dark 7.90, room 6.43)
 # and let a flat face's colour wash out again (4 of 24 dark windows; results/fields-tinted/README.md)
 FIT_CHANNELS = "tinted"
 # how many of REGIONS the noise stage fits fields on (2: object and shadow; 3: and the rest of the floor)

@@ -36,9 +36,7 @@ Each start is fitted (scene and noise stages) into ``starts/seed-S/`` and the mo
 whose train residuals its fitted noise model explains best (the highest log likelihood per pixel
 under the shading fields, the density the posterior scores with); model.json's scene stage lists
 every start's figures. The fit's own objective (the squared error) is not the rule: the start it
-prefers can be the one whose posteriors read worse. Chosen on train classes (docs/notebook.md, "Keep
-the start the noise model explains best"): over 120 train posteriors of fsclvr and studio the kept
-starts read 119 shapes against the single default start's 112.
+prefers can be the one whose posteriors read worse. Chosen on train classes.
 """
 from __future__ import annotations
 

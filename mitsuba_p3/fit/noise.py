@@ -33,9 +33,8 @@ default. The mixture is the better description of the residuals at the *true*
 geometry, but it is the worse *comparison* between hypotheses: it caps the cost of
 a pixel the hypothesis gets wrong at -log(eps / 8) nats, so a smaller object that
 leaves part of a metal sphere to "outliers" beats the whole sphere in a slightly
-wrong shade, and the posterior shrinks metals. Chosen on train classes
-(``experiments/select_noise.py``: the share of train images whose most probable shape
-and size are right under each form, the same sampler otherwise).
+wrong shade, and the posterior shrinks metals. Chosen on train classes (the share of train
+images whose most probable shape and size are right under each form, the same sampler otherwise).
 
 **The footprint.** Where the observed image differs from the empty-floor render by
 more than the floor's own residuals do, there is the object or its shadow. The
@@ -92,7 +91,7 @@ power, 1 / (its spatial correlation area x its colour-channel correlation area).
 The spectrum can be shrunk towards white noise, P + lambda mean(P) rescaled to its
 maximum-likelihood level (lambda = 0: the pure field; large lambda: the independent
 Gaussian). The fit writes lambda = 1, the value measured on train images; the form
-is not a default (docs/notebook.md, "A likelihood that keeps the outline").
+is not a default.
 """
 from __future__ import annotations
 

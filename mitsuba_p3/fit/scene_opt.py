@@ -18,7 +18,7 @@ multiplies every material's fitted colour, so the images identify it only
 through the white-weighted highlight and the floor; left free it drifts to a
 tint that the class colours then cancel, and a gray metal's highlight renders
 tinted. Held white, the benchmark's light tint goes into the fitted colours,
-where the colour posterior reads it (chosen on train classes, docs/notebook.md).
+where the colour posterior reads it.
 
 Four options beyond the paper, all off by default: ``observation="hemisphere"`` also fits the
 environment's sky and ground radiance with the globals (:mod:`mitsuba_p3.render.hemisphere`),

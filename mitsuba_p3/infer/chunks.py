@@ -18,8 +18,7 @@ from __future__ import annotations
 
 from typing import Callable
 
-# pixels per chunk: 16 renders of 56 x 72, 65 of 28 x 36 (docs/notebook.md, "Scores in chunks that fit the
-# cache": chunks of 4 to 64 renders scored alike at both sizes, the whole batch at 3 to 4 times the CPU)
+# pixels per chunk: 16 renders of 56 x 72, 65 of 28 x 36 (a chunk that fits the cache)
 CHUNK_PIXELS = 65536
 
 

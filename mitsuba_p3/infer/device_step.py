@@ -6,7 +6,7 @@ walk chart and covariance factor with numpy, and calls the move's compiled sweep
 (:mod:`mitsuba_p3.infer.smc_moves`) with them. Each of those pieces copies between the host and
 JAX's device, and each copy waits for the device to finish. On a CPU that wait is nothing; on a
 GPU the SMC's per-step work was a loop of small launches and copies, and the device waited on
-the host (``docs/notebook.md``, "Where a GPU posterior's seconds went").
+the host.
 
 Here the same step is one jitted function of the particles, which never leave the device:
 

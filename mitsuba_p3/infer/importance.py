@@ -3,7 +3,7 @@
 A tempered SMC run estimates log Z_h as the sum, over its temperatures, of the log mean incremental
 weight. Every term carries the particles of its moment, so the estimate's error is the path's: two runs
 of one hypothesis that end at the same optimum can still estimate its evidence several nats apart, the
-later one to find the optimum lower (notebook, "What the island gaps are made of"). Once a run has
+later one to find the optimum lower. Once a run has
 reached lambda = 1, its final particles show where its posterior lies, and an importance-sampling
 estimate from a proposal q fitted to them,
 
@@ -43,7 +43,7 @@ from .symmetry import chart_centres, folded, quarter_turn
 
 # the coordinates the proposal spans: all but the class logits, which a hypothesis fixes
 FREE = np.array([i for i in range(DIMENSION) if not SLICES["kappa"].start <= i < SLICES["kappa"].stop])
-# the proposal's degrees of freedom; measured on train posteriors, 3-10 alike (notebook)
+# the proposal's degrees of freedom; measured on train posteriors, 3-10 alike
 DOF = 5.0
 # added to the fitted covariance's diagonal, so that particles collapsed onto one point still give a density
 JITTER = 1e-6

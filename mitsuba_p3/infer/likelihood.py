@@ -17,8 +17,7 @@ domain and scored as white noise,
 so the low-frequency shading mismatch the Phong model always leaves is discounted and
 the edges keep their weight (beta here is the small leftover correlation's power). A
 stationary field also discounts a small object's whole appearance, so an object moved
-out of the window can cost less than one a few millimetres off: not a default
-(docs/notebook.md, "A likelihood that keeps the outline").
+out of the window can cost less than one a few millimetres off: not a default.
 
 With ``fields`` (``--noise fields``) the mismatch is tied to what the hypothesis renders: smooth
 shading fields on its own object's pixels, on the floor its shadow changes and (in forms fitted
@@ -60,8 +59,7 @@ LIKELIHOODS = ("p3", "np3")
 # (:mod:`mitsuba_p3.fit.fields`, "An image's own scale"); paper: sigma 1
 # (:mod:`mitsuba_p3.fit.noise` says why fitted is Gaussian, and what each power is)
 NOISES = ("fitted", "sandwich", "robust", "spectral", "fields", "scaled", "paper")
-# the noise model infer, evaluate, reproduce and sbc use unless told otherwise, chosen on train classes
-# (experiments/select_smc.py --noise fitted|fields; docs/notebook.md, "Lights that move"): the shading
+# the noise model infer, evaluate, reproduce and sbc use unless told otherwise, chosen on train classes: the shading
 # fields with the floor's region decide the shape at least as often as the fitted Gaussian on every world
 # (studio-jitter 24 train images 83 -> 100%, studio 12: 92 -> 100%, fsclvr 12: 100% both) at about twice the
 # seconds; "fitted" was the default before

@@ -82,8 +82,7 @@ class MaterialJumps:
         Hastings ratio of that independence proposal, whose reverse density takes the weights'
         conditional at the current bases. The walk moves the shininess only locally and the weights
         follow it only through the Gibbs update, so a run whose particles settled on one kind of
-        highlight could keep them there; this move proposes the other kind whole (on fsclvr's misread
-        metals it found no missed mode: docs/notebook.md). Returns (state, accepted, bases, gram and Gram
+        highlight could keep them there; this move proposes the other kind whole. Returns (state, accepted, bases, gram and Gram
         statistics (:meth:`_gram_statistics`) of the state kept)."""
         import jax
         import jax.numpy as jnp

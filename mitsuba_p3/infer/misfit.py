@@ -5,8 +5,7 @@ their metal a rough conductor that mirrors the floor and the dark sky, tinted by
 The inference model is Phong: an ambient and a diffuse term in the object's colour plus a white
 specular lobe. Phong explains a rubber almost to the noise; it cannot make a metal's mirrored
 surroundings, so a metal's posterior settles on some flat, dim compromise whose medians (k_a, k_d,
-k_s, alpha) say little, and a gray metal sphere's compromise looks like a dark gray rubber
-(docs/notebook.md). What *does* tell them apart is how much is left over.
+k_s, alpha) say little, and a gray metal sphere's compromise looks like a dark gray rubber. What *does* tell them apart is how much is left over.
 
 :func:`phong_misfit` measures it at a posterior's pose estimate. On the object's pixels the image
 is linear in the material given the pose, the class and the shininess (the renderer's material
@@ -15,8 +14,7 @@ fit of seven numbers (c k_a and c k_d per channel, k_s) for each shininess of a 
 misfit is the RMS residual per channel of the best of them, over the object's pixels, in units of
 the fitted noise model's residual RMS (the train renders' own misfit), so that it reads the same
 on a dark set and a bright one. On the test posteriors of fsclvr, room and dark at 120x160:
-rubbers 1.2-3.7 (medians 1.8-2.0), metals 0.9-8.6 (medians 3.2-4.1)
-(``experiments/select_material_rule.py`` prints the rule's accuracy with and without it, on train).
+rubbers 1.2-3.7 (medians 1.8-2.0), metals 0.9-8.6 (medians 3.2-4.1).
 
 Non-negative, not ordinary, least squares: the fit stands for a render Phong could make. A pose
 estimate off the object inflates the misfit of either kind alike; the rule that reads it is learnt

@@ -40,19 +40,16 @@ estimates of Z_h pool as their mean (:mod:`mitsuba_p3.infer.evidence`), and thei
 run's convergence diagnostic (the island gap). ``rounds=r`` spends more runs only where the
 answer is still open: after each round, unless the leader is decided against the runs' own
 disagreement (:func:`~mitsuba_p3.infer.evidence.decision`), another round runs ``islands`` more
-SMCs of the hypotheses still in contention. The default is up to two rounds: on the train images
-of fsclvr, room, dark, studio and the demo's world no shape was lost and the mean log p(true shape)
-rose on four and held on studio's; a decided image runs one round only, so the cost is paid where the
-islands disagree (``docs/notebook.md``, "Up to two rounds on every train set"; on test splits it read
-fewer shapes on the demo's and the same on fsclvr's, at 1.6 times the seconds there).
+SMCs of the hypotheses still in contention. The default is up to two rounds (chosen on the train
+images of five worlds); a decided image runs one round only, so the cost is paid where the islands
+disagree.
 The draws come from each run in proportion to its share of its hypothesis's pooled estimate.
 
 **Each run's evidence, twice.** A run's tempered estimate of log Z_h carries its path's error: two runs that
 end at one optimum can disagree by several nats. With ``importance`` draws (the default 256) each run
 also estimates its evidence by importance sampling from a Student-t fitted to its own final particles
-(:mod:`mitsuba_p3.infer.importance`) and keeps the mean of the two unbiased estimates; on the train
-posteriors of four worlds the island gap's median halved (``docs/notebook.md``, "The evidence of a
-finished run").
+(:mod:`mitsuba_p3.infer.importance`) and keeps the mean of the two unbiased estimates, which two
+runs agree on better than on either alone.
 
 **Material kind.** By default the matte/shiny decision is left inside each shape's run (the
 specular weight keeps the prior's two-component mixture; p(shiny | h, I) is the particles'

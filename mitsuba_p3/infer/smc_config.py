@@ -1,8 +1,7 @@
 """The tempered SMC's settings (:class:`SMCConfig`), and the defaults they had before they changed.
 
 Every field is a knob of :func:`mitsuba_p3.infer.smc.sample_smc`; the comment beside a field says what
-it does and, for a default that was chosen, where the choice was measured (train classes, in
-``docs/notebook.md``). ``mitsuba-p3 ... --set smc.FIELD=VALUE`` sets any of them
+it does; a default that was chosen was chosen on train classes. ``mitsuba-p3 ... --set smc.FIELD=VALUE`` sets any of them
 (:mod:`mitsuba_p3.cli.settings`). :data:`DEFAULTS_BEFORE` lets a record written before a default
 changed (an evaluation's ``run.json``, an SBC cache's tag) be read with the values it was made with.
 """
@@ -41,27 +40,25 @@ class SMCConfig:
     # the wide start scored at 1 / coarse of the resolution (2: a quarter of the pixels, so wide = 4 costs
     # about what full-resolution first steps cost; 1: at the full resolution); the step after it reweights
     # to the full likelihood. Chosen on fsclvr's and room's train images: island gap median 3.4 -> 1.5 and
-    # 4.4 -> 3.2 nats at 1.16 and 1.09 times the seconds (docs/notebook.md, "A coarse wide start")
+    # 4.4 -> 3.2 nats at 1.16 and 1.09 times the seconds
     coarse: int = 2
     footprint: bool = True         # half of the first step's draws placed from the image's footprint
     kinds: bool = False            # material kinds as hypotheses of their own (else within each shape)
     ridge: int = 3                 # ridge moves (colour x s, weights / s; no render) after every walk
     # the symmetry move (turns of 90 and 180 degrees): "rendered" at every material update (exact), or "free"
     # after every walk without a render (the likelihood taken as unchanged, which a row of outline pixels
-    # breaks for about a tenth of the turns). Rendered, on SBC's first 40 simulations the truth fell outside
-    # all draws of shift_x / shift_y / height 33 / 23 / 30% (free: 40 / 43 / 38%); docs/notebook.md
+    # breaks for about a tenth of the turns)
     symmetry: str = "rendered"
     # the walk in each particle's symmetry chart (:mod:`mitsuba_p3.infer.symmetry`): its covariance one
     # symmetric copy's width, not the distance between the copies the symmetry move spreads particles over
-    # (False: the walk in z with the covariance of all copies). docs/notebook.md, "The walk in a chart"
+    # (False: the walk in z with the covariance of all copies)
     chart: bool = True
     # every material update starts with the material kind's jump: a shininess from its prior and the weights
     # from their conditional there, one more render (:meth:`~mitsuba_p3.infer.model.PosteriorCore._kind_jump`)
     jump: bool = False
     # a scene whose object's centre lies outside the scoring window has likelihood 0 (the window's assumption,
     # :mod:`mitsuba_p3.infer.window`); False scores it by the window alone, where
-    # the bare floor it shows beats every scene a little off the object (docs/notebook.md, "Runs that leave
-    # the window")
+    # the bare floor it shows beats every scene a little off the object
     inside_window: bool = True
     islands: int = 2               # independent SMC runs per hypothesis and round, their evidence pooled
     rounds: int = 2                # rounds of runs; a round after the first runs only the contenders
@@ -80,8 +77,7 @@ class SMCConfig:
     waste_free: int = 0
     # each run's evidence also estimated by importance sampling from a Student-t fitted to its final particles
     # (this many draws, one render each), the run keeping the mean of both estimates (:mod:`~mitsuba_p3.infer.
-    # importance`); 0: the tempered estimate alone. Chosen on train posteriors of four worlds (docs/notebook.md,
-    # "The evidence of a finished run")
+    # importance`); 0: the tempered estimate alone
     importance: int = 256
     # NP3 only: start from P3's final particles and temper the neural term in (:func:`bridge`),
     # rather than temper all of NP3's likelihood in from the prior

@@ -13,9 +13,8 @@ pose follow: Langevin proposals along the particles' covariance, the likelihood'
 forward difference (one render per pose dimension; a render's own gradient has no silhouette
 term), the drift truncated (MALTA). All are MH moves that leave each row's tempered target
 p(z | h) p(I | z)^lambda invariant.
-Why five walks per material update, and why the ridge moves (the colour/weight ridge the
-material update crawls along), was measured on train images: ``docs/notebook.md``, "The SMC
-spends its renders on walks" and "A move along the colour/weight ridge".
+Five walks per material update, and the ridge moves (along the colour/weight ridge the material
+update crawls along), were chosen on train images.
 
 :func:`kernels` jits them once per posterior core, and a move's sweeps as one call (a loop on the
 device, not one call per sweep from the host); :func:`mover` makes the
@@ -236,8 +235,8 @@ def _kernels(core, walk_mask: tuple, kinds: bool, ridge: int, symmetry: str, cha
         """``total`` sweeps in one call: each a walk, and after every ``material_every``-th walk and the
         last one a material update, with the keys split as a loop over :func:`walk` and :func:`material`
         would split them (so a sweep-by-sweep loop gives the same draws). One compiled call per move, not
-        one per sweep (on a GPU, dispatching the sweeps from the host was a large share of a posterior's
-        time: docs/notebook.md, "Rendering speed"); ``total`` is traced, so the last move's longer run
+        one per sweep (on a GPU, dispatching the sweeps from the host is a large share of a posterior's
+        time); ``total`` is traced, so the last move's longer run
         shares the compilation. Returns (the key left after the sweeps, state, and per row (R,) the mean
         acceptance of the walks, of the material updates, of their turns and of their jumps (NaN where
         the updates make no turn or no jump)."""

@@ -4,8 +4,7 @@ A posterior names its object's material kind and colour by rules (:class:`~mitsu
 AttributeRules`). Learnt from the fit's own materials, they compare a posterior's medians with a
 different kind of input: one material per train class, optimised under the fit's squared error, where
 a posterior reads each image under the default likelihood (the shading fields). A start of the fit can
-tint a fitted material so that a posterior's brown metal lies nearer the fit's red rubber
-(docs/notebook.md, "Keep the start the noise model explains best"). ``evaluate`` therefore learns its
+tint a fitted material so that a posterior's brown metal lies nearer the fit's red rubber. ``evaluate`` therefore learns its
 rules from train posteriors; a lone ``infer`` has none.
 
 What it can have at the cost of a minute: the material's conditional posterior at the *labelled* pose
@@ -16,9 +15,7 @@ material of the image's class (its shininess kept). The material rule (on the Ph
 reflectance's saturation and the image's Phong misfit at its labelled pose, :mod:`mitsuba_p3.infer.misfit`:
 ``evaluate``'s features, the misfit measured where a posterior's estimate would be) and the colour
 centres are then learnt from those draws as ``evaluate`` learns them from posteriors. Chosen on train
-classes (``experiments/probe_material_at_truth.py``, 60 train posteriors of each of four fits, each class
-held out): colour 240 of 240 against the fit's materials' 235; material kind 217 against the fit's 199
-(without the misfit 210; evaluate's rule, learnt from the train posteriors themselves, 218).
+classes, each class held out.
 
 ``mitsuba-p3 fit`` writes them to the model folder (:data:`~mitsuba_p3.fit.attributes.LEARNT_RULES_FILE`,
 with the digest of the fit they were learnt for), and :func:`~mitsuba_p3.fit.attributes.rules_for` reads

@@ -369,8 +369,7 @@ class MitsubaRenderer(Renderer):
         canonical shapes' occlusion in closed form, Dr.Jit arithmetic inside the render's kernel.
         It gives the answer of Mitsuba's scene (the first hit of :meth:`_trace_object`, if within
         ``max_t``: the reference in tests/test_render.py) without a ray-tracing call out of the
-        kernel per light, which cost more than all the rest of a shadowed render
-        (docs/notebook.md, "Shadow rays in closed form")."""
+        kernel per light."""
         origin, direction, length = self._to_object(frame, origin_w, direction_w)
         slot = frame[4]
         origin = origin - mi.Vector3f(slot, 0.0, 0.0)
