@@ -134,6 +134,9 @@ class FieldsNoise:
     # the inverse-gamma prior (shape, rate) of an image's noise scale s^2 (module docstring, "An image's own
     # scale"), fitted on the same windows; None in models fitted before it
     scale: tuple | None = None
+    # the object's basis: "pixels" (monomials of the pixel coordinates) or "normals" (the spherical harmonics
+    # of its surface normals, :mod:`.irradiance`)
+    object_basis: str = "pixels"
 
     @property
     def white_sigma(self) -> float:
@@ -149,10 +152,15 @@ class FieldsNoise:
         return cls(sigma=float(d["sigma"]), taus=tuple(float(t) for t in d["taus"]), degree=int(d["degree"]),
                    power=float(d["power"]), window=tuple(int(v) for v in d["window"]),
                    channels=str(d.get("channels", "independent")),
-                   scale=None if d.get("scale") is None else tuple(float(v) for v in d["scale"]))
+                   scale=None if d.get("scale") is None else tuple(float(v) for v in d["scale"]),
+                   object_basis=str(d.get("object_basis", "pixels")))
 
     def variances(self) -> np.ndarray:
         """(regions, K) tau^2 of every basis column (:func:`loadings`' columns)."""
+        if self.object_basis == "normals":
+            from .irradiance import column_variances as normal_variances
+
+            return normal_variances(self.taus, self.channels, self.regions)
         return column_variances(self.taus, self.degree, self.channels)
 
     def loadings(self, tint=None, xp=np):
@@ -168,6 +176,10 @@ class FieldsNoise:
     @property
     def regions(self) -> int:
         """How many of :data:`REGIONS` the form has fields on."""
+        if self.object_basis == "normals":
+            from .irradiance import normal_regions
+
+            return normal_regions(self.taus)
         return region_count(self.taus, self.degree, self.channels)
 
 

@@ -230,6 +230,23 @@ def silhouettes(model: FittedModel, dataset: Dataset) -> np.ndarray:
                      for shot in dataset.split("train")])
 
 
+def normal_maps(model: FittedModel, dataset: Dataset) -> np.ndarray:
+    """(N, H, W, 3) the object's world normal at each train image's pixels at its true geometry ((0, 0, 1) off
+    the object), traced by :func:`~mitsuba_p3.render.jax_tracer.surface_normals`."""
+    import jax
+    import jax.numpy as jnp
+
+    from ..render.jax_tracer import camera_rays, surface_normals
+    from .scene_opt import geometry_of
+
+    height, width = dataset.resolution
+    scene = model.scene()
+    origin, rays = (jnp.asarray(v) for v in camera_rays(scene.camera, height, width))
+    trace = jax.jit(lambda p: surface_normals(p, origin, rays, float(scene.floor.half_size)))
+    return np.stack([np.asarray(trace({k: jnp.asarray(v) for k, v in geometry_of(shot).items()})).reshape(
+        height, width, 3) for shot in dataset.split("train")])
+
+
 def shot_params(shot, materials: dict) -> dict[str, np.ndarray]:
     """The contract's object parameters of a labelled shot: its true geometry and the fitted material
     of its colour+material pair (``materials``: :attr:`FittedModel.materials`)."""
@@ -402,6 +419,7 @@ def _run_stages(root: Path, dataset: Dataset, stages: Sequence[str], scene_confi
                                             empty_render(model, *dataset.resolution, shadows=True), shadows=True,
                                             directions=pose_directions(model, dataset),
                                             objects=silhouettes(model, dataset),
+                                            normals=normal_maps(model, dataset),
                                             colours=np.stack([shot_params(shot, model.materials)["colour"]
                                                               for shot in dataset.split("train")]))
         save_spectra(root / SPECTRUM_FILE, spectra)

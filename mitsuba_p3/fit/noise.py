@@ -123,6 +123,7 @@ class NoiseModel:
     spectral_shrink: float | None = None  # lambda: the spectrum is P + lambda mean(P) (0: the pure field)
     pose_power: float | None = None       # the sandwich power along the pose (None: not fitted)
     fields: dict | None = None            # the shading fields' form (:class:`.fields.FieldsNoise` as a dict)
+    normal_fields: dict | None = None     # the same on the object's normals (:mod:`.irradiance`; None: not fitted)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -199,14 +200,15 @@ def correlation_area(residuals: np.ndarray, max_lag: int = 12) -> float:
 def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, shadows: bool,
               windows: list[tuple[int, int]] | None = None, spectral_shrink: float = SPECTRAL_SHRINK,
               directions: np.ndarray | None = None, objects: np.ndarray | None = None,
-              colours: np.ndarray | None = None) -> tuple[NoiseModel, dict, dict]:
+              colours: np.ndarray | None = None, normals: np.ndarray | None = None) -> tuple[NoiseModel, dict, dict]:
     """The noise model of (observed, rendered) image pairs (N, H, W, 3), given the empty-floor render
     (H, W, 3), figures about the fit, and the spectral form's spectra per window size (``windows``,
     default :data:`SCORING_WINDOW`, and the whole image); ``shadows`` says whether the renders had hard
     shadows; ``directions`` (N, P, H, W, 3), the renders' changes along the pose, give the sandwich
     power (:func:`pose_power`); ``objects`` (N, H, W), the pixels each render's object covers, give the
     shading fields' form (:mod:`.fields`), fitted on the windows the sampler scores; tinted fields also
-    need each render's object colour, ``colours`` (N, 3)."""
+    need each render's object colour, ``colours`` (N, 3); the object's normals at the true geometry,
+    ``normals`` (N, H, W, 3), give the fields on the normals (:mod:`.irradiance`) too."""
     residuals = np.asarray(observations, np.float64) - np.asarray(renders, np.float64)
     regions = object_pixels(np.asarray(renders), np.asarray(empty)).astype(int)     # 1: object or its shadow
     sigma, outlier, iterations = fit_mixture(residuals, regions)
@@ -232,6 +234,17 @@ def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, 
                                             channels=FIT_CHANNELS,
                                             tints=None if colours is None else colour_tint(np.asarray(colours)))
         model = replace(model, fields=fields.as_dict())
+        if normals is not None:
+            from .irradiance import fit_normal_fields
+
+            windows, masks, crops = field_windows(residuals, regions.astype(bool), np.asarray(objects, bool),
+                                                  sizes[0], FIT_REGIONS, crops=True)
+            normal_windows = np.stack([np.asarray(normals[n])[crop] for n, crop in enumerate(crops)])
+            normal, normal_figures = fit_normal_fields(
+                windows, masks, normal_windows, FIT_CHANNELS,
+                tints=None if colours is None else colour_tint(np.asarray(colours)))
+            model = replace(model, normal_fields=normal.as_dict())
+            fields_figures = {**fields_figures, "normals": normal_figures}
     figures = {"pixels": int(np.prod(residuals.shape[:-1])), "object_pixels": int(regions.sum()),
                "residual_rms": model.gaussian_sigma,
                "em_iterations": iterations, "correlation_area_pixels": area,
@@ -244,20 +257,23 @@ def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, 
 
 
 def field_windows(residuals: np.ndarray, regions: np.ndarray, objects: np.ndarray,
-                  size: tuple[int, int], count: int = 2) -> tuple[np.ndarray, np.ndarray]:
+                  size: tuple[int, int], count: int = 2, crops: bool = False) -> tuple:
     """The shading fields' training data: residual windows (N, h, w, 3) of ``size`` centred on each image's
     object and shadow (``regions``, (N, H, W)), and their region masks (N, ``count``, h, w): the object's
-    pixels (``objects``), the rest of the footprint (its shadow), and with ``count`` 3 the rest of the floor."""
+    pixels (``objects``), the rest of the footprint (its shadow), and with ``count`` 3 the rest of the floor;
+    with ``crops``, also each window's (row, column) slices."""
     height, width = residuals.shape[1:3]
     size = (min(size[0], height), min(size[1], width))
-    windows, masks = [], []
+    windows, masks, cuts = [], [], []
     for n in range(len(residuals)):
         top, left = window_around(regions[n], size)
         crop = (slice(top, top + size[0]), slice(left, left + size[1]))
         windows.append(residuals[n][crop])
+        cuts.append(crop)
         masks.append(np.stack([objects[n][crop], regions[n][crop] & ~objects[n][crop],
                                ~(regions[n][crop] | objects[n][crop])][:count]))
-    return np.stack(windows), np.stack(masks).astype(np.float64)
+    out = (np.stack(windows), np.stack(masks).astype(np.float64))
+    return out + (cuts,) if crops else out
 
 
 def window_around(mask: np.ndarray, size: tuple[int, int]) -> tuple[int, int]:

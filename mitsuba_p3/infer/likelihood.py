@@ -58,7 +58,7 @@ LIKELIHOODS = ("p3", "np3")
 # (:mod:`mitsuba_p3.fit.fields`); scaled: the same fields with the image's noise scale integrated out
 # (:mod:`mitsuba_p3.fit.fields`, "An image's own scale"); paper: sigma 1
 # (:mod:`mitsuba_p3.fit.noise` says why fitted is Gaussian, and what each power is)
-NOISES = ("fitted", "sandwich", "robust", "spectral", "fields", "scaled", "paper")
+NOISES = ("fitted", "sandwich", "robust", "spectral", "fields", "scaled", "normals", "paper")
 # the noise model infer, evaluate, reproduce and sbc use unless told otherwise, chosen on train classes: the shading
 # fields with the floor's region decide the shape at least as often as the fitted Gaussian on every world
 # (studio-jitter 24 train images 83 -> 100%, studio 12: 92 -> 100%, fsclvr 12: 100% both) at about twice the
@@ -84,6 +84,9 @@ class LikelihoodConfig:
     # the image's noise scale, integrated out: (the inverse-gamma prior's shape and rate, the effective count
     # per value); None: the scale fixed at 1 (mitsuba_p3.fit.fields, "An image's own scale"; fields form only)
     scale: tuple | None = None
+    # the object's field basis: "pixels" (the window's monomials) or "normals" (the spherical harmonics of the
+    # hypothesis's surface normals, mitsuba_p3.fit.irradiance; the renders' normals are then needed)
+    fields_object: str = "pixels"
 
     def __post_init__(self):
         from ..errors import ConfigError
@@ -111,8 +114,15 @@ class LikelihoodConfig:
             if self.fields_channels not in CHANNELS:
                 raise ConfigError(f"the shading fields' channels must be one of {', '.join(CHANNELS)}; got "
                                   f"{self.fields_channels!r}")
+            if self.fields_object not in ("pixels", "normals"):
+                raise ConfigError(f"the shading fields' object basis is pixels or normals; got {self.fields_object!r}")
             try:
-                region_count(self.fields, self.fields_degree, self.fields_channels)
+                if self.fields_object == "normals":
+                    from ..fit.irradiance import normal_regions
+
+                    normal_regions(self.fields)
+                else:
+                    region_count(self.fields, self.fields_degree, self.fields_channels)
             except ValueError as exc:
                 raise ConfigError(str(exc)) from None
             if not all(np.isfinite(t) and t > 0 for t in self.fields):
@@ -221,6 +231,10 @@ def fields_regions(config: LikelihoodConfig) -> int:
     """How many regions the config's shading fields cover (:func:`~mitsuba_p3.fit.fields.region_count`)."""
     from ..fit.fields import region_count
 
+    if config.fields_object == "normals":
+        from ..fit.irradiance import normal_regions
+
+        return normal_regions(config.fields)
     return region_count(config.fields, config.fields_degree, config.fields_channels)
 
 
@@ -231,6 +245,12 @@ def fields_form(config: LikelihoodConfig, height: int, width: int, colours=None,
     from ..errors import ConfigError
     from ..fit.fields import COLOURED, FieldsNoise, colour_tint, monomials
 
+    if config.fields_object == "normals":         # the basis is each pose's own (fit.irradiance.region_bases)
+        from ..fit.irradiance import column_variances, loading_for, normal_regions
+
+        regions = normal_regions(config.fields)
+        return (column_variances(config.fields, config.fields_channels, regions), None,
+                loading_for(config.fields_channels, regions, colours, xp))
     noise = FieldsNoise(config.sigma, config.fields, config.fields_degree, config.power, (height, width),
                         config.fields_channels)
     if noise.channels in COLOURED:
@@ -242,22 +262,31 @@ def fields_form(config: LikelihoodConfig, height: int, width: int, colours=None,
     return noise.variances(), monomials(height, width, config.fields_degree), loading
 
 
-def fields_parts(observed, renders, objects, empty, config: LikelihoodConfig, colours=None):
+def fields_parts(observed, renders, objects, empty, config: LikelihoodConfig, colours=None, normals=None):
     """(the fields' density at the fixed scale (B,), its quadratic form r' C_1^-1 r (B,)) of renders (B, h, w, 3)
     (:func:`fields_log_likelihood`'s arguments; the form is what the image's own scale reads)."""
     import jax.numpy as jnp
 
     from ..fit.fields import field_log_likelihood
 
-    variances, basis, loading = fields_form(config, *renders.shape[-3:-1], colours=colours, xp=jnp)
     residual = jnp.asarray(observed)[None] - renders
+    if config.fields_object == "normals":
+        from ..errors import ConfigError
+        from ..fit.irradiance import log_likelihood, normal_regions
+
+        if normals is None:
+            raise ConfigError("the shading fields on the object's normals need each render's normals")
+        masks = fields_masks(renders, objects, empty, normal_regions(config.fields))
+        return log_likelihood(residual, masks, normals, config.sigma, config.fields, config.fields_channels,
+                              colours, xp=jnp, quadratic=True)
+    variances, basis, loading = fields_form(config, *renders.shape[-3:-1], colours=colours, xp=jnp)
     masks = fields_masks(renders, objects, empty, fields_regions(config))
     return field_log_likelihood(residual, masks, config.sigma, variances, basis, xp=jnp, loading=loading,
                                 quadratic=True)
 
 
 def fields_log_likelihood(observed, renders, objects, empty, config: LikelihoodConfig, colours=None,
-                          scale_weight=1.0):
+                          scale_weight=1.0, normals=None):
     """The shading fields' log likelihood of renders (B, h, w, 3) whose object covers ``objects`` (B, h, w)
     and, for tinted fields, is of colour ``colours`` (B, 3) -> (B,) (:mod:`mitsuba_p3.fit.fields`; the
     regions of :func:`fields_masks`). With ``config.scale``, the image's noise scale integrated out, at
@@ -266,7 +295,7 @@ def fields_log_likelihood(observed, renders, objects, empty, config: LikelihoodC
 
     from ..fit.fields import scale_log_likelihood
 
-    value, form = fields_parts(observed, renders, objects, empty, config, colours)
+    value, form = fields_parts(observed, renders, objects, empty, config, colours, normals)
     if config.scale is None:
         return config.power * value
     count = config.scale[2] * np.prod(renders.shape[-3:])
@@ -275,7 +304,7 @@ def fields_log_likelihood(observed, renders, objects, empty, config: LikelihoodC
 
 
 def score(observation: dict, renders, config: LikelihoodConfig, channels: list[Channel] | None = None,
-          objects=None, colours=None):
+          objects=None, colours=None, normals=None):
     """(B, H, W, 3) renders -> (B,) log-likelihoods of ``observation`` (JAX). An observation's own
     ``neural_weight`` entry, a number the compiled sampler takes as an argument, overrides the
     config's: the SMC's bridge from P3 to NP3 tempers the neural term in by it; its ``scale_weight``
@@ -288,7 +317,7 @@ def score(observation: dict, renders, config: LikelihoodConfig, channels: list[C
 
             raise ConfigError("the shading fields' likelihood needs the renders' object pixels")
         log_lik = fields_log_likelihood(observation["image"], renders, objects, observation["empty"], config,
-                                        colours, observation.get("scale_weight", 1.0))
+                                        colours, observation.get("scale_weight", 1.0), normals)
     elif config.spectral:
         log_lik = spectral_log_likelihood(observation["image"], renders, observation, config)
     else:

@@ -100,7 +100,7 @@ class MaterialJumps:
         if new_bases is None:                                                # the same pose: the same objects
             new_bases, _ = self._image(moved, observation, bases=True)
         colour = self.params(position)["colour"]
-        new_statistics = self._gram_statistics(new_bases, target[3], observation)
+        new_statistics = self._gram_statistics(new_bases, target[3], observation, position)
         new_gram = self._gram(new_statistics, target[0], colour)
         dims, w_loc, w_std = self._weight_coordinates()
         old, new = self._weights_conditional(gram, colour), self._weights_conditional(new_gram, colour)

@@ -96,7 +96,7 @@ class MaterialMoves(MaterialJumps):
         if loglikelihood is not None:
             state = ScoredState(state.position, state.logdensity, loglikelihood)
         bases, objects, jump_bases = rendered or self.material_renders(key, state.position, observation, jump)
-        statistics = self._gram_statistics(bases, objects, observation)
+        statistics = self._gram_statistics(bases, objects, observation, state.position)
         gram = self._gram(statistics, tempering, self.params(state.position)["colour"])
         # the material moves leave the pose, so the window's term (mitsuba_p3.infer.window) and the object's
         # pixels are the state's throughout
@@ -121,13 +121,14 @@ class MaterialMoves(MaterialJumps):
         """Whether the likelihood's shading fields load on the object's colour (their Gram then depends on it)."""
         return self.config.fields is not None and self.config.fields_channels in COLOURED
 
-    def _gram_statistics(self, bases, objects, observation) -> tuple:
+    def _gram_statistics(self, bases, objects, observation, position=None) -> tuple:
         """What :meth:`_gram` needs of the bases that the colour leaves alone: the inner products of the
         bases A, D, S and the residual r = I_obs - F, all channels' (4, 3, 4, 3), and under shading fields
         the vectors' field statistics (:func:`~mitsuba_p3.fit.fields.field_statistics` of the regions of
         the pose: its object's pixels ``objects``, the floor its shadow changes, the rest of the floor);
         None without fields. Computed once per bases: the tinted fields' colour move takes a second Gram
-        at the proposal's colour from the same statistics."""
+        at the proposal's colour from the same statistics. Fields on the object's normals take them from
+        ``position``'s pose (:meth:`normals`)."""
         import jax.numpy as jnp
 
         from ..fit.fields import field_statistics, monomials
@@ -142,6 +143,11 @@ class MaterialMoves(MaterialJumps):
         if self.config.fields is None:
             return full, None
         masks = fields_masks(bases[..., 3, :], objects, observation["empty"], fields_regions(self.config))
+        if self.config.fields_object == "normals":
+            from ..fit.irradiance import region_bases, statistics
+
+            normal_bases = region_bases(self.normals(position, observation), masks.shape, jnp)
+            return full, statistics(jnp.moveaxis(vectors, -2, 0), masks, normal_bases, xp=jnp)
         basis = monomials(*vectors.shape[:2], self.config.fields_degree)
         return full, field_statistics(jnp.moveaxis(vectors, -2, 0), masks, basis, xp=jnp)   # b: (4, R, k, 3)
 
@@ -256,7 +262,7 @@ class MaterialMoves(MaterialJumps):
             return (*self._independence_mh(k_accept, state, new_position, bases, conditional.log_q(current)
                                            - conditional.log_q(proposal), observation, target), gram)
         # the conditional was built on the current colour's loading: the way back on the proposal's
-        statistics = statistics or self._gram_statistics(bases, target[3], observation)
+        statistics = statistics or self._gram_statistics(bases, target[3], observation, position)
         new_gram = self._gram(statistics, target[0], self.params(new_position)["colour"])
         reverse = self._coupled_colour_conditional(new_gram, slope, offset)
         state, accepted = self._independence_mh(k_accept, state, new_position, bases,

@@ -140,13 +140,35 @@ class PosteriorCore(MaterialMoves):
         covered = silhouette(params, jnp.asarray(origin), rays.reshape(-1, 3), self.renderer.floor_half_size)
         return covered.reshape(height, width)
 
+    def normals(self, z, observation):
+        """(h, w, 3) z's object's world normals over the scored image ((0, 0, 1) off the object), traced from its
+        pose (JAX); None unless the likelihood's fields live on the object's normals."""
+        if self.config.fields is None or self.config.fields_object != "normals":
+            return None
+        import jax
+        import jax.numpy as jnp
+
+        from ..render.jax_tracer import surface_normals
+
+        height, width = np.shape(observation["image"])[:2]
+        origin, rays = self.camera_rays
+        rays = jnp.asarray(rays).reshape(self.renderer.height, self.renderer.width, 3)
+        if "window" in observation:
+            top, left = observation["window"][0], observation["window"][1]
+            rays = jax.lax.dynamic_slice(rays, (top, left, 0), (height, width, 3))
+        normal = surface_normals(self.params(z), jnp.asarray(origin), rays.reshape(-1, 3),
+                                 self.renderer.floor_half_size)
+        return normal.reshape(height, width, 3)
+
     def _score(self, image, objects, observation, z):
         """The score of one render (h, w, 3) of position z whose object covers ``objects`` (h, w; None
         unless the likelihood needs them) (:func:`~mitsuba_p3.infer.likelihood.score`; tinted shading
         fields read z's colour)."""
         colours = self.params(z)["colour"][None] if self.config.fields_channels in COLOURED else None
+        normals = self.normals(z, observation)
         return score(observation, image[None], self.config, self.channels,
-                     None if objects is None else objects[None], colours)[0]
+                     None if objects is None else objects[None], colours,
+                     None if normals is None else normals[None])[0]
 
     def _image(self, z, observation, bases: bool = False):
         """The render (or material bases) of z that ``observation`` scores -- its window, or the whole

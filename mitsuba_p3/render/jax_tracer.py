@@ -226,6 +226,20 @@ def silhouette(p: Mapping[str, jnp.ndarray], origin, directions, floor_half_size
         jnp.asarray(p["kappa"], jnp.int32), [partial(covered, INTERSECT[shape]) for shape in SHAPES]))
 
 
+def surface_normals(p: Mapping[str, jnp.ndarray], origin, directions, floor_half_size: float):
+    """(N, 3) the world unit normal of the object where each camera ray sees it first, (0, 0, 1) elsewhere:
+    :func:`silhouette`'s geometry with the normals it finds (the shading fields on the object's normals,
+    :mod:`mitsuba_p3.fit.irradiance`)."""
+    pose = {k: p[k] for k in ("shift", "theta", "scale")}
+    origin, directions = jnp.asarray(origin)[:, None], jnp.asarray(directions).T
+
+    def normals(intersect):
+        return _geometry(intersect, pose, origin, directions, floor_half_size)[3].T
+
+    return jax.lax.stop_gradient(jax.lax.switch(
+        jnp.asarray(p["kappa"], jnp.int32), [partial(normals, INTERSECT[shape]) for shape in SHAPES]))
+
+
 def _materialised(fn, predicate):
     """``fn()``, computed once into buffers.
 
