@@ -327,6 +327,10 @@ def model_core(model_dir, renderer: str = "mitsuba", resolution: tuple[int, int]
     from ..infer.likelihood import LikelihoodConfig
     from ..infer.model import PosteriorCore
 
+    from ..errors import ConfigError
+
+    if noise not in ("fitted", "sandwich", "fields", "scaled"):
+        raise ConfigError(f"sbc simulates the fitted, sandwich, fields and scaled noise models; not {noise!r}")
     fitted = FittedModel(model_dir)
     model_noise = fitted.noise
     if noise in ("fields", "scaled"):
