@@ -52,3 +52,12 @@ def test_an_array_is_checked_as_a_file_is(array, message):
 def test_an_array_in_range_is_the_inference_resolution():
     image = p3.load_image(np.random.default_rng(0).uniform(size=(240, 320, 3)))
     assert image.shape == (120, 160, 3) and image.dtype == np.float32
+
+
+def test_the_command_line_says_its_version():
+    from typer.testing import CliRunner
+
+    from mitsuba_p3.cli.app import app
+
+    result = CliRunner().invoke(app, ["--version"])
+    assert result.exit_code == 0 and result.output.strip() == f"mitsuba-p3 {p3.__version__}"

@@ -13,10 +13,20 @@ baseline_app = typer.Typer(no_args_is_help=True, help="Few-shot baselines: Proto
 app.add_typer(baseline_app, name="baseline")
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        from .. import __version__
+
+        typer.echo(f"mitsuba-p3 {__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
 def _global_options(variant: str = typer.Option(
         None, "--variant", help="Mitsuba variant: llvm_ad_rgb (CPU) or cuda_ad_rgb (GPU); default: CUDA when "
-        "Dr.Jit finds a device, else the CPU. Same as MITSUBA_P3_VARIANT.")) -> None:
+        "Dr.Jit finds a device, else the CPU. Same as MITSUBA_P3_VARIANT."),
+        version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                     help="Print the version and exit.")) -> None:
     """Bayesian inverse graphics for few-shot concept learning (Mitsuba 3 + JAX)."""
     import os
 
