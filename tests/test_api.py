@@ -61,3 +61,25 @@ def test_the_command_line_says_its_version():
 
     result = CliRunner().invoke(app, ["--version"])
     assert result.exit_code == 0 and result.output.strip() == f"mitsuba-p3 {p3.__version__}"
+
+
+def test_every_command_writes_where_out_says():
+    """One spelling for the output on every command: -o and --out (--output stays an alias where it was)."""
+    import typer.main
+
+    from mitsuba_p3.cli.app import app
+
+    def commands(group, prefix=()):
+        for name, command in group.commands.items():
+            if getattr(command, "commands", None):
+                yield from commands(command, prefix + (name,))
+            else:
+                yield prefix + (name,), command
+
+    writers = 0
+    for name, command in commands(typer.main.get_command(app)):
+        for param in command.params:
+            if {"--out", "--output", "-o"} & set(param.opts):
+                writers += 1
+                assert {"-o", "--out"} <= set(param.opts), (name, param.opts)
+    assert writers >= 10

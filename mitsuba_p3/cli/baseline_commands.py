@@ -16,7 +16,7 @@ from .app import baseline_app, progress_bar
 def baseline_train(
     method: str = typer.Argument(..., help="protonets or maml."),
     dataset: Path = typer.Argument(..., help="Benchmark folder; its train split is used."),
-    out: Path = typer.Option(..., "--out", help="Training folder (checkpoint, curve; resumes)."),
+    out: Path = typer.Option(..., "-o", "--out", help="Training folder (checkpoint, curve; resumes)."),
     resolution: int = typer.Option(56, help="Square input size: 56 or 84 as in the paper."),
     iterations: Optional[int] = typer.Option(None, help="Cap on meta-iterations (default 20000); training "
                                              "stops earlier when the validation accuracy stops improving."),
@@ -54,7 +54,7 @@ def baseline_train(
 @baseline_app.command("train-all")
 def baseline_train_all(
     data: Path = typer.Option(Path("data"), "--data", help="Folder of the benchmark folders (data/fsclvr, ...)."),
-    out: Path = typer.Option(Path("out/reproduction"), "--out", help="The reproduction's folder: trainings in "
+    out: Path = typer.Option(Path("out/reproduction"), "-o", "--out", help="The reproduction's folder: trainings in "
                              "OUT/baselines, scores in OUT/runs (reproduce's default; resumes)."),
     benchmarks: str = typer.Option("fsclvr,dark,room", help="Comma-separated benchmarks (fsclvr's networks are "
                                    "also scored on ood)."),
@@ -85,7 +85,7 @@ def baseline_train_all(
 def baseline_evaluate(
     trained: Path = typer.Argument(..., help="Training folder (mitsuba-p3 baseline train)."),
     dataset: Path = typer.Argument(..., help="Benchmark folder; its test episodes are used."),
-    out: Path = typer.Option(..., "--out", help="Evaluation run folder (results go to baselines/)."),
+    out: Path = typer.Option(..., "-o", "--out", help="Evaluation run folder (results go to baselines/)."),
     episodes: int = typer.Option(100, help="Episodes per N-way K-shot setting (same as evaluate)."),
 ) -> None:
     """Accuracy on the same test episodes as P3/NP3; the evaluation tables pick it up."""
@@ -101,7 +101,7 @@ def baseline_evaluate(
 @baseline_app.command("frozen")
 def baseline_frozen(
     dataset: Path = typer.Argument(..., help="Benchmark folder; its test episodes are scored."),
-    out: Path = typer.Option(..., "--out", help="Evaluation run folder (results go to baselines/frozen-*.json)."),
+    out: Path = typer.Option(..., "-o", "--out", help="Evaluation run folder (results go to baselines/frozen-*.json)."),
     choose_on: Optional[Path] = typer.Option(None, help="Benchmark whose train classes choose the layer, the probe's "
                                                         "C and the centring mean (default: DATASET's own; ood has "
                                                         "none: give fsclvr's)."),

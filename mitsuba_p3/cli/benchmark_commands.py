@@ -13,7 +13,7 @@ from .app import benchmark_app, parse_resolution, progress_bar
 @benchmark_app.command("generate")
 def benchmark_generate(
     variant: str = typer.Argument(..., help="fsclvr, dark, room, ood or studio."),
-    out: Path = typer.Option(..., "--out", help="Data-set folder to write (resumes if it exists)."),
+    out: Path = typer.Option(..., "-o", "--out", help="Data-set folder to write (resumes if it exists)."),
     seed: int = typer.Option(0, help="Seed: the same seed gives the same labels and images."),
     size: str = typer.Option("full", help="full (BENCHMARK.md counts) or small (built-in example)."),
     resolution: Optional[str] = typer.Option(None, help="HxW (default: 480x640 full, 120x160 small)."),
@@ -87,7 +87,7 @@ def benchmark_check(
 @benchmark_app.command("show")
 def benchmark_show(
     folder: Path = typer.Argument(..., help="Data-set folder."),
-    output: Path = typer.Option(Path("sheet.png"), "-o", "--output", help="Contact sheet (.png or .jpg)."),
+    output: Path = typer.Option(Path("sheet.png"), "-o", "--out", "--output", help="Contact sheet (.png or .jpg)."),
     resolution: str = typer.Option("240x320", help="HxW of each thumbnail."),
 ) -> None:
     """Contact sheet: one labelled shot per class."""

@@ -59,7 +59,7 @@ def choose_sampler(name: str, mh: SamplerConfig, particles: int | None, noise: s
 @app.command()
 def fit(
     dataset_dir: Path = typer.Argument(..., help="Benchmark folder (its train split is used)."),
-    out: Path = typer.Option(..., "--out", help="Fitted-model folder to write."),
+    out: Path = typer.Option(..., "-o", "--out", help="Fitted-model folder to write."),
     stages: str = typer.Option("scene,features,priors,noise,rules",
                                help="Comma-separated stages to (re-)run; rules: the attribute rules that infer "
                                     "uses alone, learnt from the material at train images' true poses (after "
@@ -134,7 +134,7 @@ def fit(
 def infer(
     image: Path = typer.Argument(..., help="Observed image (PNG/JPEG, or .npy floats in [0, 1])."),
     model: Path = typer.Option(..., "--model", help="Fitted-model folder (mitsuba-p3 fit)."),
-    output: Path = typer.Option(..., "-o", "--output", help="Folder for the posterior and its figures."),
+    output: Path = typer.Option(..., "-o", "--out", "--output", help="Folder for the posterior and its figures."),
     chains: int = sampler_option("chains", SamplerConfig),
     steps: int = sampler_option("steps", SamplerConfig),
     burn_in: int = sampler_option("burn_in", SamplerConfig),
@@ -189,7 +189,7 @@ def infer(
 def sbc(
     model: Path = typer.Option(..., "--model", help="Fitted-model folder (mitsuba-p3 fit) whose own renders "
                                                     "are simulated."),
-    out: Path = typer.Option(Path("out/sbc"), "--out", help="Report folder: sbc.json, sbc.png, calibration.png and "
+    out: Path = typer.Option(Path("out/sbc"), "-o", "--out", help="Report folder: sbc.json, sbc.png, calibration.png and "
                                                           "cache.npz, from which a killed run resumes."),
     images: int = typer.Option(200, help="Simulations (scenes drawn from the model's prior)."),
     draws: int = typer.Option(99, help="Posterior draws ranked against each simulation's truth."),
@@ -235,7 +235,7 @@ def sbc(
 def evaluate(
     dataset: Path = typer.Argument(..., help="Benchmark folder (mitsuba-p3 benchmark generate)."),
     model: Path = typer.Option(..., "--model", help="Fitted-model folder (mitsuba-p3 fit)."),
-    out: Path = typer.Option(..., "--out", help="Run folder: cached posteriors and tables (resumes)."),
+    out: Path = typer.Option(..., "-o", "--out", help="Run folder: cached posteriors and tables (resumes)."),
     likelihoods: str = typer.Option("p3,np3", help="Comma-separated: p3, np3."),
     episodes: int = typer.Option(100, help="Episodes per N-way K-shot setting."),
     jobs: int = typer.Option(1, help="Parallel posterior workers (processes that live for the whole run)."),
@@ -297,7 +297,7 @@ def evaluate(
 def reproduce(
     data: Path = typer.Option(Path("data"), help="Folder of benchmark folders (data/fsclvr, ...) and data/models; "
                                                  "what is missing is generated and fitted."),
-    out: Path = typer.Option(Path("out/reproduction"), help="Tables, timing log and one run folder per benchmark "
+    out: Path = typer.Option(Path("out/reproduction"), "-o", "--out", help="Tables, timing log and one run folder per benchmark "
                                                             "(resumes); results/ holds only the frozen snapshots "
                                                             "the docs cite."),
     benchmarks: str = typer.Option("fsclvr,room,dark,ood", help="Comma-separated benchmarks."),

@@ -13,7 +13,7 @@ from .app import COLOUR, MATERIAL, SCALE, SETS, SHADOWS, SHAPE, SHIFT, THETA, ap
 @app.command()
 def render(
     scene_file: Path = typer.Argument(..., help="Scene XML (e.g. scenes/fsclvr.xml)."),
-    output: Path = typer.Option(..., "-o", "--output", help="Image to write (.png or .jpg)."),
+    output: Path = typer.Option(..., "-o", "--out", "--output", help="Image to write (.png or .jpg)."),
     shape: Optional[str] = SHAPE,
     color: Optional[str] = COLOUR,
     material: Optional[str] = MATERIAL,
@@ -41,7 +41,7 @@ def render(
 @app.command()
 def crosscheck(
     scene_file: Path = typer.Argument(..., help="Scene XML (e.g. scenes/fsclvr.xml)."),
-    output: Path = typer.Option(Path("crosscheck.png"), "-o", "--output",
+    output: Path = typer.Option(Path("crosscheck.png"), "-o", "--out", "--output",
                                 help="Difference image: Mitsuba | JAX | 10x |difference|."),
     shape: Optional[str] = SHAPE,
     color: Optional[str] = COLOUR,
