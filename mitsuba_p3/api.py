@@ -57,7 +57,7 @@ def sampler_config(sampler: str = DEFAULT_SAMPLER, noise: str = DEFAULT_NOISE, s
 
     mh = mh or SamplerConfig(seed=seed)
     if sampler not in SAMPLERS:
-        raise ConfigError(f"unknown sampler {sampler!r}; choose {', '.join(SAMPLERS)}")
+        raise ConfigError(f"unknown sampler {sampler!r}; choose auto, smc or mh")
     if sampler == "auto":
         sampler = "mh" if noise == "paper" or sigma is not None else "smc"
     if sampler == "mh":

@@ -83,3 +83,22 @@ def test_every_command_writes_where_out_says():
                 writers += 1
                 assert {"-o", "--out"} <= set(param.opts), (name, param.opts)
     assert writers >= 10
+
+
+def test_every_numeric_option_has_a_range_and_the_parser_keeps_it():
+    from typer.testing import CliRunner
+
+    from mitsuba_p3.cli import app
+    from mitsuba_p3.cli.ranges import RANGES, numeric_options
+
+    options = list(numeric_options(app))
+    assert len(options) > 40
+    missing = sorted({f"{function.__name__} --{name}" for function, name, _ in options if name not in RANGES})
+    assert not missing, missing
+    runner = CliRunner()
+    for arguments in (["benchmark", "generate", "fsclvr", "--out", "x", "--seed", "-1"],
+                      ["benchmark", "generate", "fsclvr", "--out", "x", "--seed", str(2**70)],
+                      ["benchmark", "generate", "fsclvr", "--out", "x", "--spp", "0"],
+                      ["fit", "x", "--out", "y", "--channels", "-1"]):
+        result = runner.invoke(app, arguments)
+        assert result.exit_code == 2 and "Invalid value" in result.output, (arguments, result.output)
