@@ -25,7 +25,8 @@ run resumes), then prints JSON, the settings side by side:
   image the largest spread (max - min across seeds) over hypotheses, median over images;
   ``log_evidence_spread_leading_hypothesis`` the same for the hypothesis that leads (the one the
   posterior is made of); ``modal_shape_same_across_seeds`` the share of images whose modal shape
-  every seed agrees on; ``by_seed`` each seed's shape and material accuracy and shape ECE.
+  every seed agrees on; ``by_seed`` each seed's shape and material accuracy and shape ECE;
+- ``per_image``: each image's true shape, the first seed's modal shape and its probability of the truth.
 
 Settings: ``smc-normals`` the default sampler with the shading fields on the object's normals (``--noise
 normals``); ``smc-fields`` is the default of ``infer`` (tempered SMC over the shape classes under the
@@ -136,6 +137,17 @@ def _modal_shape_agreement(runs: list[dict]) -> float:
     return float(np.mean([len({modal(run[i]) for run in runs}) == 1 for i in runs[0]]))
 
 
+def _image_reading(shot, posterior: CachedPosterior) -> dict:
+    """One image's reading under the first seed: its file, true shape, the posterior's modal shape and the
+    probability it gives the true one."""
+    from mitsuba_p3.shapes import SHAPES
+
+    classes = np.asarray(posterior.program.samples["class"], int).ravel()
+    shares = np.bincount(classes, minlength=len(SHAPES)) / len(classes)
+    return {"file": str(shot.file.relative_to(shot.file.parents[2])), "shape": shot.cls.shape,
+            "read": SHAPES[int(shares.argmax())], "p_true": round(float(shares[SHAPES.index(shot.cls.shape)]), 3)}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dataset", default="data/fsclvr")
@@ -207,6 +219,7 @@ def main() -> None:
                  **convergence(runs[0].values()),
                  "log_evidence_spread": _evidence_spread(runs)}
         entry["seeds"] = seeds
+        entry["per_image"] = [_image_reading(shot, runs[0][shot.index]) for shot in images]
         if seeds > 1:
             per_image = [r_hat_across_seeds([run[s.index] for run in runs]) for s in images]
             r_hats = [max(r.values()) for r in per_image]
