@@ -155,8 +155,7 @@ class GaussianKde:
     within-class scale is itself uncertain, which charges a far draw about its log distance.
 
     Its own class for speed: the density is one fused, jitted kernel sum in
-    whitened coordinates (measured 3-10x faster than the same sum in numpy at the
-    evaluation's sizes), so scoring an episode takes a fraction of a second.
+    whitened coordinates, so scoring an episode takes a fraction of a second.
     """
 
     def __init__(self, points: np.ndarray, spread: np.ndarray | None = None, dof: float = np.inf):

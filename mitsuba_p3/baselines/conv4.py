@@ -42,8 +42,7 @@ def max_pool2(x):
 
     Written as a reshape and a max rather than ``lax.reduce_window``: the same values,
     but its gradient is a compare-and-select instead of XLA's ``select_and_scatter``,
-    which is slow on CPU (a MAML meta-iteration at 84 px took 1.8x as long with it;
-    ``scripts/bench_baselines.py``). On ties a max's gradient is shared among the tied
+    which is slow on CPU (``scripts/bench_baselines.py`` measures it). On ties a max's gradient is shared among the tied
     inputs instead of going to the first; after ReLU the only ties are at 0, where the
     ReLU passes no gradient, so the gradients agree too.
     """

@@ -10,8 +10,8 @@ from ..infer.mcmc import SamplerConfig
 from ..infer.smc import SMCConfig
 from ..render import RENDERERS
 
-# The sampler settings of the evaluation tables (840 posteriors in about 2.5 h on 2 cores): shorter
-# chains than the inference defaults, measured to give the same accuracies within their intervals.
+# The MH sampler settings of the evaluation tables: shorter chains than the inference defaults, chosen because
+# they give the same accuracies within their intervals.
 PRESET = SamplerConfig(chains=8, steps=200, burn_in=30, tune_rounds=3, tune_steps=40)
 
 

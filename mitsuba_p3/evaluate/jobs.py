@@ -39,11 +39,7 @@ def worker_threads(jobs: int) -> int | None:
     """Threads per worker process when ``jobs`` share this machine, or None to keep the defaults.
 
     Every worker's Dr.Jit and XLA otherwise start one thread per core, and the
-    oversubscribed workers slow each other down. Measured on the 2-core machine, P3
-    posteriors at the evaluation preset: one process with 2 threads 10.4 s per image;
-    two processes with 2 threads each about 29 s each (14.5 s per image); two
-    processes with one thread each 14.5 s each (7.3 s per image, 1.4x the throughput
-    of one process)."""
+    oversubscribed workers slow each other down: the cores are shared out instead."""
     if jobs <= 1:
         return None
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
@@ -276,11 +272,9 @@ class PosteriorMisfits:
         return self(index, posterior) if rules.reads_misfit else None
 
 
-# The material rule's features, chosen on train classes, each class held out in turn: the
-# Phong weights, the reflectance's saturation and the Phong misfit scored 92.2 / 94.4 / 95.6%,
-# against 91.1 / 94.4 / 90.0% without the misfit and 85.6 / 90.0 / 81.1% for the weights alone.
-# The saturation alone did not carry over to the test splits;
-# the misfit measures what Phong cannot render, not a colour, and reads the same on every set.
+# The material rule's features, chosen on train classes, each class held out in turn: the Phong weights,
+# the reflectance's saturation and the Phong misfit (what Phong cannot render, not a colour, so it reads the
+# same on every set).
 MATERIAL_RULE_FEATURES = "weights+saturation+misfit"
 
 

@@ -90,10 +90,8 @@ def vgg_features(images, depth: int = len(LAYERS), weights=None) -> list:
 def _conv3x3(x, kernel):
     """'SAME' 3x3 convolution, NHWC x HWIO. Tiny ones (the selected channels of conv1_1:
     3 in, 3 out) run as 27 multiply-adds per output channel over channels-first planes, so the
-    innermost axis is the image's width. Inside the SMC's material move (384 particles, 56x72
-    windows) a move then costs 0.45 s, against 1.84 s for the same sums over channels-last
-    pixels (XLA vectorised those over the 3 channels) and 0.46 s with XLA's convolution, which
-    costs a walk 122 ms against these sums' 85 ms."""
+    innermost axis is the image's width: faster inside the SMC's moves than the same sums over
+    channels-last pixels and than XLA's convolution (``scripts/bench_posterior.py`` times a posterior)."""
     import jax
     import jax.numpy as jnp
 

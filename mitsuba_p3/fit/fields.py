@@ -105,13 +105,9 @@ REGIONS = ("object", "shadow", "floor")   # a form uses the first 2 or all 3 (ol
 CHANNELS = ("independent", "achromatic", "mixed", "tinted", "sheened")
 # the loadings whose object columns follow the hypothesis's colour (they need each hypothesis's colour)
 COLOURED = ("tinted", "sheened")
-# the loading the noise stage fits: independent fields forgive a wrong colour (on fsclvr's and studio's train
-# images the nearest wrong colour of the same kind cost 4-9 nats against the fitted Gaussian's 186-222, and
-# beat the truth in 3-4 of 12); achromatic ones keep it (193 both) and keep most of the outline's gain, but let a flat face's colour wash
-# out towards gray; tinted ones explain the train residuals better (marginal log likelihood per pixel on 24
-# train windows, dark 7.79 against 7.58, room 6.39 against 6.30; the correlation they leave 46 against 68 and
-# 24 against 35 pixels) and a wash-out beats the truth in 1 of dark's 24 probed images against 4; sheened ones fit better still (dark 7.90, room 6.43)
-# and let a flat face's colour wash out again (4 of 24 dark windows; results/fields-tinted/README.md)
+# the loading the noise stage fits, chosen on train images: independent fields forgive a wrong colour;
+# achromatic ones keep it but let a flat face's colour wash out towards gray; tinted ones explain the train
+# residuals better and keep the colour; sheened ones fit better still and let a flat face's colour wash out again
 FIT_CHANNELS = "tinted"
 # how many of REGIONS the noise stage fits fields on (2: object and shadow; 3: and the rest of the floor)
 FIT_REGIONS = 3

@@ -7,16 +7,15 @@ against the memory there is before anything renders.
 """
 from __future__ import annotations
 
-# SMC particles per hypothesis and run where the JAX tracer renders on a GPU, chosen on 20 train images
-# x 2 seeds on an H200 under the coarse wide start: two seeds' runs agree best at 512 (island gap median
-# 2.0 nats at 64, 1.1 at 256, 0.9 at 512; 0.43, 0.99, 1.63 s per posterior): results/gpu/README.md
+# SMC particles per hypothesis and run where the JAX tracer renders on a GPU, chosen on train images under two
+# seeds: two seeds' runs agree best at 512 (results/gpu/README.md)
 GPU_PARTICLES = 512
 
 
 def default_particles(renderer: str = "mitsuba", platform: str | None = None) -> int:
     """The SMC's particles per hypothesis for a renderer where this runs: :data:`GPU_PARTICLES` for the
     JAX tracer on a GPU, else :attr:`~mitsuba_p3.infer.smc.SMCConfig.particles` (Mitsuba's callbacks on
-    a GPU are bound by launches and copies, not width: results/gpu/README.md)."""
+    a GPU are bound by launches and copies, not width)."""
     from .smc import SMCConfig
 
     from ..backend import jax_on_gpu

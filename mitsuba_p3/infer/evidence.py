@@ -111,8 +111,8 @@ def object_evidence(core, observation, rows: Rows, space: Hypotheses, pooled: np
 
 
 # a run whose best final particle got less than this share of the way from the empty floor's log likelihood
-# to the best any run reached never rendered the object (a wrong shape at the right pose gets most of the way:
-# 79% for a sphere against a cylinder's 100%; a lost run well under 1%)
+# to the best any run reached never rendered the object (a wrong shape at the right pose gets most of the way,
+# a lost run hardly any)
 LOST_SHARE = 0.1
 
 
@@ -121,9 +121,8 @@ def mark_lost_runs(statistics: dict, rows: Rows, space: Hypotheses) -> None:
     hardly better than the empty floor, against what the best run reached (:data:`LOST_SHARE`). Such a
     run's particles all render (nearly) the same image, their likelihoods are equal, and the tempering
     rule, which reads equal likelihoods as a posterior already found, takes it straight to lambda = 1:
-    its evidence is about the floor's, whatever the hypothesis. (Seen under a sharp GGX lobe: both cube
-    runs of a metal cube, whose flat faces flash under prior-drawn materials, ended 2 nats above the
-    floor against the cylinder's 517; the island gap cannot show it when both runs agree.)"""
+    its evidence is about the floor's, whatever the hypothesis, and the island gap cannot show it when
+    both runs of a hypothesis lost the object alike."""
     empty = statistics.get("empty_log_likelihood")
     if empty is None:
         return

@@ -43,7 +43,7 @@ from .symmetry import chart_centres, folded, quarter_turn
 
 # the coordinates the proposal spans: all but the class logits, which a hypothesis fixes
 FREE = np.array([i for i in range(DIMENSION) if not SLICES["kappa"].start <= i < SLICES["kappa"].stop])
-# the proposal's degrees of freedom; measured on train posteriors, 3-10 alike
+# the proposal's degrees of freedom (chosen on train posteriors; a range of values does alike)
 DOF = 5.0
 # added to the fitted covariance's diagonal, so that particles collapsed onto one point still give a density
 JITTER = 1e-6

@@ -61,8 +61,6 @@ LIKELIHOODS = ("p3", "np3")
 NOISES = ("fitted", "sandwich", "robust", "spectral", "fields", "scaled", "normals", "paper")
 # the noise model infer, evaluate, reproduce and sbc use unless told otherwise, chosen on train classes: the shading
 # fields with the floor's region decide the shape at least as often as the fitted Gaussian on every world
-# (studio-jitter 24 train images 83 -> 100%, studio 12: 92 -> 100%, fsclvr 12: 100% both) at about twice the
-# seconds; "fitted" was the default before
 DEFAULT_NOISE = "fields"
 
 

@@ -39,8 +39,8 @@ class SMCConfig:
     wide_steps: int = 6
     # the wide start scored at 1 / coarse of the resolution (2: a quarter of the pixels, so wide = 4 costs
     # about what full-resolution first steps cost; 1: at the full resolution); the step after it reweights
-    # to the full likelihood. Chosen on fsclvr's and room's train images: island gap median 3.4 -> 1.5 and
-    # 4.4 -> 3.2 nats at 1.16 and 1.09 times the seconds
+    # to the full likelihood. Chosen on fsclvr's and room's train images (the runs of a hypothesis agree better
+    # for a little more time)
     coarse: int = 2
     footprint: bool = True         # half of the first step's draws placed from the image's footprint
     kinds: bool = False            # material kinds as hypotheses of their own (else within each shape)

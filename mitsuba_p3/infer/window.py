@@ -11,8 +11,7 @@ object lies elsewhere breaks it: in the whole image it would render the object o
 the image shows bare, at a cost of hundreds of nats, while the window alone scores it as
 the bare floor, better than any scene a few millimetres off the object. Runs of the SMC
 settled on such scenes (all their likelihoods equal, so the tempering read them as a
-posterior already found and went straight to lambda = 1), 186 nats below the truth on
-its own model's images. So the window's
+posterior already found and went straight to lambda = 1), far below the truth. So the window's
 assumption is part of the likelihood: a scene whose object's centre appears outside the
 window has likelihood zero (:func:`window_log_term`). The centre (x, y, s_z) of a convex
 object appears inside its own silhouette, so a window that holds the footprint holds the

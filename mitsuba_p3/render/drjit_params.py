@@ -57,7 +57,7 @@ def _vec(cls, array: np.ndarray):
 
     Built from lists on purpose: arrays made from numpy views keep numpy's buffer,
     whose alignment varies call to call, and Dr.Jit bakes the alignment into the
-    kernel -- every render would then recompile (70 ms instead of 1 ms).
+    kernel -- every render would then recompile.
     """
     array = np.asarray(array, np.float32)
     return cls(*[mi.Float(column.tolist()) for column in array.reshape(-1, array.shape[-1]).T])

@@ -245,8 +245,7 @@ def _materialised(fn, predicate):
 
     XLA CPU fuses (and so repeats) cheap producers into every consumer, and it expands
     ``optimization_barrier`` before fusing; a conditional is a real boundary. Without
-    it the geometry was recomputed inside each light's loop: 3.6 ms instead of 1.1 ms
-    for the cylinder. ``predicate`` is always true; the other branch returns zeros.
+    it the geometry was recomputed inside each light's loop. ``predicate`` is always true; the other branch returns zeros.
     """
     return jax.lax.cond(predicate, fn, lambda: jax.tree_util.tree_map(jnp.zeros_like, jax.eval_shape(fn)))
 

@@ -5,7 +5,7 @@ Object geometry is never rebuilt. The three canonical shapes (see
 own *slot*, and every camera ray is moved into its image's object frame (the
 inverse of shift . yaw . scale) and over to the slot of its image's shape class.
 A change of pose, size or class is therefore only per-ray arithmetic: no BVH
-rebuild (4 ms for a 5K-triangle mesh) and no kernel recompilation, and a batch
+rebuild and no kernel recompilation, and a batch
 of B parameter sets is a single launch of B*H*W rays. The floor z = 0 is
 intersected analytically and shaded by a ``phong`` BSDF whose pattern is a
 Mitsuba bitmap texture. Shading sums :func:`~mitsuba_p3.render.phong.phong_terms` over the lights;
