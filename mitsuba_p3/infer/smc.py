@@ -330,6 +330,12 @@ def _run(core, rows: Rows, pooled: np.ndarray, space: Hypotheses, config: SMCCon
     # draws: rows by their posterior weight, particles uniformly (equal weights after resampling). One
     # pool, not chains: draws cut from one pool would agree by construction, so no R-hat is made of
     # them; the runs' agreement is the island gap (and R-hat across seeds, scripts/bench_infer.py)
+    if not (np.all(np.isfinite(row_weights)) and row_weights.sum() > 0):
+        from ..errors import InferenceError
+
+        evidence = dict(zip(space.names, np.round(pooled, 2).tolist()))
+        raise InferenceError(f"the runs' evidence is not finite (log evidence per hypothesis {evidence}); "
+                             "no draws can be made")
     z, loglik, logprior = rows.state
     draws = max(1, config.draws)
     chosen_row = rng.choice(len(row_weights), size=draws, p=row_weights / row_weights.sum())
