@@ -213,32 +213,21 @@ def generate(variant: str, out: str | Path, seed: int = 0, size: str = "full",
     labels = {**header, "images": [label_of(im, image_overrides(im, defaults)[1]) for im in images]}
 
     world_text = _world_text(world, height, width, spp)
-    labels_path = out / LABELS_FILE
-    if labels_path.is_file():
-        _same_benchmark(out, labels)
-        scene_path = out / SCENE_FILE
-        if scene_path.is_file() and scene_path.read_text() != world_text:
-            raise BenchmarkError(f"{world} has changed since {out} was started; finish it with the old XML, "
-                                 "or choose a new --out folder")
-    out.mkdir(parents=True, exist_ok=True)
+    _claim(out, labels, SCENE_FILE, world_text, world)
     _copy_world(world, out, world_text)
-    atomic_write(labels_path, json.dumps(labels, indent=1))
+    atomic_write(out / LABELS_FILE, json.dumps(labels, indent=1))
 
     mi = mitsuba()
-    todo = [im for im in images if not _image_is_done(out / im.file, height, width)]
-    done = len(images) - len(todo)
-    if progress:
-        progress(done, len(images))
-    for image in todo:
+
+    def render(image, path: Path) -> None:
         overrides, _ = image_overrides(image, defaults)
         overrides.update(width=str(width), height=str(height), spp=str(spp))
         scene = mi.load_file(str(out / SCENE_FILE), parallel=False, **overrides)
         linear = np.asarray(mi.render(scene, seed=image.image_seed), dtype=np.float32)
-        write_png(out / image.file, srgb_encode(tone_map(linear[..., :3], curve)))
-        done += 1
-        if progress:
-            progress(done, len(images))
-    return labels_path
+        write_png(path, srgb_encode(tone_map(linear[..., :3], curve)))
+
+    _render_missing(images, out, height, width, render, progress)
+    return out / LABELS_FILE
 
 
 def _check_out(out: Path) -> None:
@@ -247,6 +236,31 @@ def _check_out(out: Path) -> None:
     refuse_inside_protected(out, "mitsuba-p3 benchmark generate")   # out itself may be this benchmark, resumed
     if (out / "model.json").is_file():
         raise BenchmarkError(f"{out} is a fitted model; choose a new --out folder for the benchmark")
+
+
+def _claim(out: Path, labels: dict, world_name: str, world_text: str, world: Path) -> None:
+    """Start ``out`` as this benchmark's folder, or resume it: refused when it holds other labels or a world
+    changed since it was started."""
+    if (out / LABELS_FILE).is_file():
+        _same_benchmark(out, labels)
+        old = out / world_name
+        if old.is_file() and old.read_text() != world_text:
+            raise BenchmarkError(f"{world} has changed since {out} was started; finish it with the old world, "
+                                 "or choose a new --out folder")
+    out.mkdir(parents=True, exist_ok=True)
+
+
+def _render_missing(images, out: Path, height: int, width: int, render: Callable, progress) -> None:
+    """``render(image, path)`` every planned image not yet on disk at the right size, reporting progress."""
+    todo = [im for im in images if not _image_is_done(out / im.file, height, width)]
+    done = len(images) - len(todo)
+    if progress:
+        progress(done, len(images))
+    for image in todo:
+        render(image, out / image.file)
+        done += 1
+        if progress:
+            progress(done, len(images))
 
 
 def _same_benchmark(out: Path, labels: dict) -> None:
@@ -289,24 +303,9 @@ def _generate_cycles(variant, out, seed, size, resolution, spp, progress, world,
               "resolution": [height, width], "spp": spec.samples, "scene": CYCLES_WORLD_FILE,
               "renderer": "cycles", **({} if world is None else {"world": world_path.name})}
     labels = {**header, "images": [label_of(im, renderer.lamps(im)) for im in images]}
-    labels_path = out / LABELS_FILE
     world_text = json.dumps(spec.as_dict(), indent=1, default=str)
-    if labels_path.is_file():
-        _same_benchmark(out, labels)
-        old = out / CYCLES_WORLD_FILE
-        if old.is_file() and old.read_text() != world_text:
-            raise BenchmarkError(f"{world_path} has changed since {out} was started; finish it with the old "
-                                 "world, or choose a new --out folder")
-    out.mkdir(parents=True, exist_ok=True)
+    _claim(out, labels, CYCLES_WORLD_FILE, world_text, world_path)
     atomic_write(out / CYCLES_WORLD_FILE, world_text)
-    atomic_write(labels_path, json.dumps(labels, indent=1))
-    todo = [im for im in images if not _image_is_done(out / im.file, height, width)]
-    done = len(images) - len(todo)
-    if progress:
-        progress(done, len(images))
-    for image in todo:
-        renderer.render(image, out / image.file)
-        done += 1
-        if progress:
-            progress(done, len(images))
-    return labels_path
+    atomic_write(out / LABELS_FILE, json.dumps(labels, indent=1))
+    _render_missing(images, out, height, width, renderer.render, progress)
+    return out / LABELS_FILE

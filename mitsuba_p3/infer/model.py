@@ -118,6 +118,19 @@ class PosteriorCore(MaterialMoves):
         (:func:`~mitsuba_p3.infer.window.window_log_term`)."""
         return window_log_term(self, z, observation)
 
+    def _scored_rays(self, observation):
+        """(origin (3,), rays (h * w, 3)) of the pixels the observation scores: its window, or the whole image."""
+        import jax
+        import jax.numpy as jnp
+
+        height, width = np.shape(observation["image"])[:2]
+        origin, rays = self.camera_rays
+        rays = jnp.asarray(rays).reshape(self.renderer.height, self.renderer.width, 3)
+        if "window" in observation:
+            top, left = observation["window"][0], observation["window"][1]
+            rays = jax.lax.dynamic_slice(rays, (top, left, 0), (height, width, 3))
+        return jnp.asarray(origin), rays.reshape(-1, 3)
+
     def objects(self, z, observation):
         """(h, w) the pixels of the scored image (the observation's window, or the whole image) that z's
         object covers, traced from its pose without shading (JAX; vmap for many); None unless the
@@ -125,40 +138,20 @@ class PosteriorCore(MaterialMoves):
         (:meth:`_image`); this serves the JAX tracer's path and SBC's simulations."""
         if self.config.fields is None:
             return None
-        import jax
-        import jax.numpy as jnp
-
         from ..render.jax_tracer import silhouette
 
-        height, width = np.shape(observation["image"])[:2]
-        origin, rays = self.camera_rays
-        rays = jnp.asarray(rays).reshape(self.renderer.height, self.renderer.width, 3)
-        if "window" in observation:
-            top, left = observation["window"][0], observation["window"][1]
-            rays = jax.lax.dynamic_slice(rays, (top, left, 0), (height, width, 3))
-        params = self.params(z)
-        covered = silhouette(params, jnp.asarray(origin), rays.reshape(-1, 3), self.renderer.floor_half_size)
-        return covered.reshape(height, width)
+        covered = silhouette(self.params(z), *self._scored_rays(observation), self.renderer.floor_half_size)
+        return covered.reshape(np.shape(observation["image"])[:2])
 
     def normals(self, z, observation):
         """(h, w, 3) z's object's world normals over the scored image ((0, 0, 1) off the object), traced from its
         pose (JAX); None unless the likelihood's fields live on the object's normals."""
         if self.config.fields is None or self.config.fields_object != "normals":
             return None
-        import jax
-        import jax.numpy as jnp
-
         from ..render.jax_tracer import surface_normals
 
-        height, width = np.shape(observation["image"])[:2]
-        origin, rays = self.camera_rays
-        rays = jnp.asarray(rays).reshape(self.renderer.height, self.renderer.width, 3)
-        if "window" in observation:
-            top, left = observation["window"][0], observation["window"][1]
-            rays = jax.lax.dynamic_slice(rays, (top, left, 0), (height, width, 3))
-        normal = surface_normals(self.params(z), jnp.asarray(origin), rays.reshape(-1, 3),
-                                 self.renderer.floor_half_size)
-        return normal.reshape(height, width, 3)
+        normal = surface_normals(self.params(z), *self._scored_rays(observation), self.renderer.floor_half_size)
+        return normal.reshape(np.shape(observation["image"])[:2] + (3,))
 
     def _score(self, image, objects, observation, z):
         """The score of one render (h, w, 3) of position z whose object covers ``objects`` (h, w; None
