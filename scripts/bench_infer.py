@@ -28,8 +28,7 @@ run resumes), then prints JSON, the settings side by side:
   every seed agrees on; ``by_seed`` each seed's shape and material accuracy and shape ECE;
 - ``per_image``: each image's true shape, the first seed's modal shape and its probability of the truth.
 
-Settings: ``smc-normals`` the default sampler with the shading fields on the object's normals (``--noise
-normals``); ``smc-fields`` is the default of ``infer`` (tempered SMC over the shape classes under the
+Settings: ``smc-fields`` is the default of ``infer`` (tempered SMC over the shape classes under the
 shading fields' form, ``--noise fields``); ``smc-fields-one-round`` the same with one round of runs (the
 default sampler before 2026-11-28, ``SMCConfig.rounds``); ``smc`` the default sampler under the fitted
 Gaussian noise model with hard shadows (the default likelihood before 2026-11-27); ``smc-robust`` the same with the fitted
@@ -86,8 +85,7 @@ CONFIGS = {"mh-paper": {"noise": "paper"}, "mh-fitted": {"noise": "fitted"},
            "smc-fields": {"noise": "fields", "sampler": SMCConfig()},
            "smc-fields-one-round": {"noise": "fields", "sampler": SMCConfig(rounds=1)},
            "smc-fields-rounds4": {"noise": "fields", "sampler": SMCConfig(rounds=4)},
-           "smc-fields-tempered": {"noise": "fields", "sampler": SMCConfig(importance=0)},
-           "smc-normals": {"noise": "normals", "sampler": SMCConfig()}}
+           "smc-fields-tempered": {"noise": "fields", "sampler": SMCConfig(importance=0)}}
 CHECKED = ("shift", "scale", "colour")
 
 

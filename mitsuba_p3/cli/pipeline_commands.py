@@ -27,9 +27,7 @@ NOISE_HELP = ("Noise model: fitted (the Gaussian fitted to the model's train res
               "its shadow and the rest of the floor, marginalised: a wrong shade or a change of lighting costs little, "
               "the outline keeps its evidence), scaled (the same fields with the image's own noise scale integrated "
               "out: an image the model renders worse than its train images has its evidence tempered by its own "
-              "misfit), normals (the fields with the object's correction a function of its surface normals: "
-              "any distant lighting's diffuse shading, which a ball's and a drum's normals cannot share) or paper "
-              "(sigma 1, no shadows: the paper's).")
+              "misfit) or paper (sigma 1, no shadows: the paper's).")
 SPREAD_HELP = ("Train images per train class whose posteriors fit the protoprograms' concept spread "
                "(sampled like the test images; 0: the paper's programs, tables in RUN/spread0).")
 TAILS_HELP = ("The concept's kernels: Student-t ones whose tails and scale are fitted on train classes "

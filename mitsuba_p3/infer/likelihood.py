@@ -58,7 +58,7 @@ LIKELIHOODS = ("p3", "np3")
 # (:mod:`mitsuba_p3.fit.fields`); scaled: the same fields with the image's noise scale integrated out
 # (:mod:`mitsuba_p3.fit.fields`, "An image's own scale"); paper: sigma 1
 # (:mod:`mitsuba_p3.fit.noise` says why fitted is Gaussian, and what each power is)
-NOISES = ("fitted", "sandwich", "robust", "spectral", "fields", "scaled", "normals", "paper")
+NOISES = ("fitted", "sandwich", "robust", "spectral", "fields", "scaled", "paper")
 # the noise model infer, evaluate, reproduce and sbc use unless told otherwise, chosen on train classes: the shading
 # fields with the floor's region decide the shape at least as often as the fitted Gaussian on every world
 DEFAULT_NOISE = "fields"

@@ -211,9 +211,7 @@ def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | No
       the power of the correlation they leave tempering the white part alone: sigma / sqrt(power), power 1),
       hard shadows;
     - ``scaled``: the fields' form with the image's own noise scale integrated out under the prior the fit
-      learnt from the train windows (:mod:`mitsuba_p3.fit.fields`, "An image's own scale");
-    - ``normals``: the fields' form with the object's field a function of its surface normals (spherical
-      harmonics of degree <= 2: any distant lighting's diffuse shading, :mod:`mitsuba_p3.fit.irradiance`).
+      learnt from the train windows (:mod:`mitsuba_p3.fit.fields`, "An image's own scale").
     """
     from ..errors import ConfigError
 
@@ -236,16 +234,6 @@ def default_likelihood(fitted: FittedModel, kind: str = "np3", sigma: float | No
                               f"mitsuba-p3 fit DATASET --out {fitted.root} --stages noise")
         return LikelihoodConfig(kind=kind, sigma=model.gaussian_sigma, power=model.spectral_power,
                                 shadows=model.shadows, spectral=True)
-    if noise == "normals":
-        if model.normal_fields is None:
-            raise ConfigError(f"{fitted.root} has no shading fields on the object's normals; refit its noise stage: "
-                              f"mitsuba-p3 fit DATASET --out {fitted.root} --stages noise")
-        from ..fit.fields import FieldsNoise
-
-        fields = FieldsNoise.from_dict(model.normal_fields)
-        return LikelihoodConfig(kind=kind, sigma=fields.white_sigma, power=1.0, shadows=model.shadows,
-                                fields=fields.taus, fields_degree=fields.degree, fields_channels=fields.channels,
-                                fields_object="normals")
     if noise in ("fields", "scaled"):
         if model.fields is None:
             raise ConfigError(f"{fitted.root} has no shading fields' form; refit its noise stage: "
