@@ -41,6 +41,7 @@ def test_shipped_worlds_load_and_dark_dims_every_lamp():
      "texture must be a relative path"),
     ('{"name": "w", "surfaces": [{"centre": [0, 0, 0], "size": [1, 1], "texture": "none.png"}]}', "no texture"),
     ("[1, 2", "not a readable JSON world"),
+    ('{"name": "w", "surfaces": 3}', "surfaces must be a list"),
 ])
 def test_a_bad_world_is_refused_in_one_line(tmp_path, body, message):
     path = tmp_path / "w.cycles.json"

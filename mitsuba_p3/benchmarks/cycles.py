@@ -115,6 +115,8 @@ def load_world(path: str | Path) -> CyclesWorld:
     known = {"name", "lamp_strength", "lamp_jitter", "samples", "max_bounces", "clevr_ground", "surfaces"}
     if unknown := sorted(set(raw) - known):
         raise BenchmarkError(f"{path}: unknown field(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+    if not isinstance(raw.get("surfaces", []), list):
+        raise BenchmarkError(f"{path}: surfaces must be a list of objects")
     surfaces = []
     for i, s in enumerate(raw.get("surfaces", [])):
         where = f"{path}: surfaces[{i}]"
