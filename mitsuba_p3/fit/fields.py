@@ -205,19 +205,22 @@ def loadings(degree: int, channels: str = "independent") -> np.ndarray:
     channel; ``achromatic``: a column per monomial, the same in the three channels; ``mixed``: the
     constant achromatic, the other monomials per channel; ``tinted`` and ``sheened``: the achromatic
     columns, which :func:`tinted_loadings` colours on the object's region."""
+    return function_loadings(_degrees(degree), channels)
+
+
+def function_loadings(degrees, channels: str) -> np.ndarray:
+    """(K, k, 3) :func:`loadings` over k basis functions of the given ``degrees`` (k,) (the monomials', or the
+    spherical harmonics' bands): a column per function shared by the channels or one per channel (``mixed``:
+    the degree-0 function shared, the others per channel)."""
     if channels not in CHANNELS:
         raise ValueError(f"unknown fields channels {channels!r}; choose {', '.join(CHANNELS)}")
     columns = []
-    for m, total in enumerate(_degrees(degree)):
-        if channels in ("achromatic",) + COLOURED or (channels == "mixed" and total == 0):
-            column = np.zeros((len(_degrees(degree)), 3))
-            column[m] = 1.0
+    for m, total in enumerate(degrees):
+        shared = channels in ("achromatic",) + COLOURED or (channels == "mixed" and total == 0)
+        for c in ([None] if shared else range(3)):
+            column = np.zeros((len(degrees), 3))
+            column[m, slice(None) if c is None else c] = 1.0
             columns.append(column)
-        else:
-            for c in range(3):
-                column = np.zeros((len(_degrees(degree)), 3))
-                column[m, c] = 1.0
-                columns.append(column)
     return np.stack(columns)
 
 

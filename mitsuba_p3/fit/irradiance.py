@@ -27,6 +27,7 @@ import numpy as np
 
 from .fields import (COLOURED, FieldsNoise, _degrees, colour_tint, fit_scale, marginal_log_likelihood, monomials,
                      tinted_loadings)
+from .fields import function_loadings as fields_function_loadings
 
 # the spherical-harmonic band of each basis function of :func:`irradiance_basis`
 SH_BANDS = np.array([0, 1, 1, 1, 2, 2, 2, 2, 2])
@@ -54,20 +55,8 @@ def region_bases(normals, masks_shape, xp=np):
 
 
 def function_loadings(channels: str) -> np.ndarray:
-    """(K, 9, 3) the basis columns' loadings on the nine functions: as :func:`.fields.loadings` with the
-    harmonics in place of the monomials (``mixed``: the constant shared by the channels)."""
-    columns = []
-    for m, band in enumerate(SH_BANDS):
-        if channels in ("achromatic",) + COLOURED or (channels == "mixed" and band == 0):
-            column = np.zeros((FUNCTIONS, 3))
-            column[m] = 1.0
-            columns.append(column)
-        else:
-            for c in range(3):
-                column = np.zeros((FUNCTIONS, 3))
-                column[m, c] = 1.0
-                columns.append(column)
-    return np.stack(columns)
+    """(K, 9, 3) the basis columns' loadings on the nine harmonics (:func:`.fields.function_loadings`)."""
+    return fields_function_loadings(SH_BANDS, channels)
 
 
 def column_variances(taus, channels: str, regions: int) -> np.ndarray:
@@ -79,11 +68,11 @@ def column_variances(taus, channels: str, regions: int) -> np.ndarray:
     loading = function_loadings(channels)
     function_of = np.array([np.nonzero(column.any(axis=1))[0][0] for column in loading])
     rows = [taus[SH_BANDS[function_of]] ** 2]
-    degrees = _degrees(1)
+    # the other regions' functions: the plane's monomials (degrees 0, 1, 1), then zero functions (-1)
+    degree = np.r_[_degrees(1), np.full(FUNCTIONS - len(_degrees(1)), -1)][function_of]
     for r in range(regions - 1):
         own = taus[3 + 2 * r: 5 + 2 * r]
-        rows.append(np.where(function_of < len(degrees), own[np.minimum(degrees[np.minimum(function_of, 2)], 1)] ** 2,
-                             1.0))
+        rows.append(np.where(degree >= 0, own[np.maximum(degree, 0)] ** 2, 1.0))
     return np.stack(rows)
 
 

@@ -229,20 +229,16 @@ def fit_noise(observations: np.ndarray, renders: np.ndarray, empty: np.ndarray, 
 
         if FIT_CHANNELS in COLOURED and colours is None:
             raise ValueError(f"{FIT_CHANNELS} shading fields are fitted with each train render's object colour")
-        fields, fields_figures = fit_fields(*field_windows(residuals, regions.astype(bool), np.asarray(objects, bool),
-                                                           sizes[0], FIT_REGIONS),
-                                            channels=FIT_CHANNELS,
-                                            tints=None if colours is None else colour_tint(np.asarray(colours)))
+        windows, masks, crops = field_windows(residuals, regions.astype(bool), np.asarray(objects, bool), sizes[0],
+                                              FIT_REGIONS, crops=True)
+        tints = None if colours is None else colour_tint(np.asarray(colours))
+        fields, fields_figures = fit_fields(windows, masks, channels=FIT_CHANNELS, tints=tints)
         model = replace(model, fields=fields.as_dict())
         if normals is not None:
             from .irradiance import fit_normal_fields
 
-            windows, masks, crops = field_windows(residuals, regions.astype(bool), np.asarray(objects, bool),
-                                                  sizes[0], FIT_REGIONS, crops=True)
             normal_windows = np.stack([np.asarray(normals[n])[crop] for n, crop in enumerate(crops)])
-            normal, normal_figures = fit_normal_fields(
-                windows, masks, normal_windows, FIT_CHANNELS,
-                tints=None if colours is None else colour_tint(np.asarray(colours)))
+            normal, normal_figures = fit_normal_fields(windows, masks, normal_windows, FIT_CHANNELS, tints=tints)
             model = replace(model, normal_fields=normal.as_dict())
             fields_figures = {**fields_figures, "normals": normal_figures}
     figures = {"pixels": int(np.prod(residuals.shape[:-1])), "object_pixels": int(regions.sum()),
